@@ -1,0 +1,443 @@
+"""The jmocap clip: one video's 2D keypoints, its camera and (optionally) ground truth.
+
+A clip is stored as one compressed ``.npz`` (schema ``"jmocap-clip-1"``, see
+``docs/formats.md``), written atomically (temp file in the same folder + ``os.replace``), so
+an interrupted writer never leaves a half-written clip behind.
+
+Keys of the .npz (all arrays; strings are 0-d unicode arrays, so no pickle is needed):
+
+====================  ==========  ==========  ===============================================
+key                   dtype       shape       meaning
+====================  ==========  ==========  ===============================================
+format                str         ()          ``"jmocap-clip-1"``
+name                  str         ()          clip name
+layout                str         ()          ``body25`` | ``coco17`` | ``h36m17``
+fps                   float64     ()          frames per second
+keypoints             float32     (T, J, 3)   x, y pixels, confidence in [0, 1] (0 = missing,
+                                              then x = y = 0)
+intrinsics            float64     (4,)        fx, fy, cx, cy (pixels)
+image_size            int64       (2,)        width, height (pixels)
+extrinsics            float64     (4, 4)      optional; world->camera ``[R t; 0 1]``, OpenCV axes
+gt_q                  float32     (T, nq)     optional; MuJoCo qpos (root pos, quat wxyz, hinges)
+gt_qd                 float32     (T, nv)     optional; MuJoCo qvel, nv = nq - 1
+gt_keypoints3d        float32     (T, J, 3)   optional; world-frame joints in the clip's layout
+gt_contacts           float32     (T, 4)      optional; {0, 1}: L heel, L toe, R heel, R toe
+gt_tau                float32     (T, nv)     optional; generalised forces
+gt_grf                float32     (T, 4, 3)   optional; world-frame force per contact point
+height_m              float64     ()          optional; subject height in metres
+mass_kg               float64     ()          optional; subject mass in kilograms
+meta                  str         ()          JSON object (motion kind, seed, generator, ...)
+====================  ==========  ==========  ===============================================
+
+Both :class:`Clip` construction and :func:`load_clip` validate; problems raise
+:class:`ClipFormatError` naming the file (or clip), the field and, for value problems, the
+first bad frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from jmocap.layouts import LAYOUTS, get_layout
+
+FORMAT = "jmocap-clip-1"
+
+# optional ground-truth fields: name -> (trailing shape, where None = free size to be checked)
+GT_FIELDS = ("gt_q", "gt_qd", "gt_keypoints3d", "gt_contacts", "gt_tau", "gt_grf")
+_ARRAY_FIELDS = ("keypoints", "intrinsics", "image_size", "extrinsics") + GT_FIELDS
+
+
+class ClipFormatError(ValueError):
+    """A clip file or Clip object that does not follow the ``jmocap-clip-1`` schema."""
+
+
+@dataclass(frozen=True, eq=False)
+class Clip:
+    """One clip of 2D keypoints with its camera and optional ground truth (numpy arrays).
+
+    Construction coerces dtypes (float32 keypoints/ground truth, float64 camera) and
+    validates everything (raises :class:`ClipFormatError`). Use :meth:`replace` to derive a
+    modified clip. ``meta`` is a JSON-serialisable dict.
+    """
+
+    name: str
+    layout: str
+    fps: float
+    keypoints: np.ndarray  # (T, J, 3) float32
+    intrinsics: np.ndarray  # (4,) float64
+    image_size: np.ndarray  # (2,) int64
+    extrinsics: np.ndarray | None = None  # (4, 4) float64
+    gt_q: np.ndarray | None = None
+    gt_qd: np.ndarray | None = None
+    gt_keypoints3d: np.ndarray | None = None
+    gt_contacts: np.ndarray | None = None
+    gt_tau: np.ndarray | None = None
+    gt_grf: np.ndarray | None = None
+    height_m: float | None = None
+    mass_kg: float | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        checked = _validate(values, f"clip {self.name!r}")
+        for k, v in checked.items():
+            object.__setattr__(self, k, v)
+
+    # --- conveniences -------------------------------------------------------------------
+    @property
+    def num_frames(self) -> int:
+        return int(self.keypoints.shape[0])
+
+    def __len__(self) -> int:
+        return self.num_frames
+
+    @property
+    def num_joints(self) -> int:
+        return int(self.keypoints.shape[1])
+
+    @property
+    def layout_spec(self):
+        """The :class:`~jmocap.layouts.Layout` of the keypoints."""
+        return get_layout(self.layout)
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return self.gt_q is not None
+
+    @property
+    def camera(self):
+        """The clip's :class:`jmocap.camera.Camera` (identity extrinsics when none stored)."""
+        from jmocap.camera import Camera
+
+        fx, fy, cx, cy = (float(v) for v in self.intrinsics)
+        w, h = (float(v) for v in self.image_size)
+        return Camera.from_intrinsics(fx, fy, cx, cy, w, h, extrinsics=self.extrinsics)
+
+    def replace(self, **changes) -> Clip:
+        return dataclasses.replace(self, **changes)
+
+    def slice(self, start: int, stop: int | None = None) -> Clip:
+        """Frames ``[start, stop)`` of every per-frame field."""
+        changes = {
+            k: getattr(self, k)[start:stop]
+            for k in ("keypoints",) + GT_FIELDS
+            if getattr(self, k) is not None
+        }
+        return self.replace(**changes)
+
+
+# --- validation -------------------------------------------------------------------------
+
+def _first_bad_frame(bad: np.ndarray) -> int:
+    """Index of the first frame (axis 0) where ``bad`` has a True entry."""
+    per_frame = bad.reshape(bad.shape[0], -1).any(axis=1)
+    return int(np.argmax(per_frame))
+
+
+def _as_array(values, key, dtype, where):
+    v = values[key]
+    try:
+        return np.asarray(v, dtype=dtype)
+    except (TypeError, ValueError) as e:
+        raise ClipFormatError(f"{where}: field {key!r} cannot be read as {np.dtype(dtype)}: {e}") from None
+
+
+def _check_finite(arr, key, where, per_frame=True):
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        if per_frame and arr.ndim >= 1 and arr.shape[0] > 0:
+            raise ClipFormatError(
+                f"{where}: field {key!r} has non-finite values, first at frame {_first_bad_frame(bad)}"
+            )
+        raise ClipFormatError(f"{where}: field {key!r} has non-finite values")
+
+
+def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
+    """Coerce and validate clip fields; return the coerced values. Raises ClipFormatError."""
+    out = dict(values)
+
+    # scalars / strings
+    name = values.get("name")
+    if not isinstance(name, str):
+        raise ClipFormatError(f"{where}: field 'name' must be a string, got {type(name).__name__}")
+    layout = values.get("layout")
+    if not isinstance(layout, str) or layout.lower() not in LAYOUTS:
+        raise ClipFormatError(
+            f"{where}: field 'layout' is {layout!r}, not one of {sorted(LAYOUTS)}"
+        )
+    out["layout"] = layout = layout.lower()
+    try:
+        fps = float(values.get("fps"))
+    except (TypeError, ValueError):
+        raise ClipFormatError(f"{where}: field 'fps' must be a number, got {values.get('fps')!r}") from None
+    if not (np.isfinite(fps) and fps > 0):
+        raise ClipFormatError(f"{where}: field 'fps' must be finite and > 0, got {fps}")
+    out["fps"] = fps
+    for key in ("height_m", "mass_kg"):
+        v = values.get(key)
+        if v is not None:
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                raise ClipFormatError(f"{where}: field {key!r} must be a number, got {v!r}") from None
+            if not (np.isfinite(v) and v > 0):
+                raise ClipFormatError(f"{where}: field {key!r} must be finite and > 0, got {v}")
+            out[key] = v
+    meta = values.get("meta")
+    if meta is None:
+        meta = {}
+    if not isinstance(meta, dict):
+        raise ClipFormatError(f"{where}: field 'meta' must be a dict, got {type(meta).__name__}")
+    try:
+        json.dumps(meta)
+    except (TypeError, ValueError) as e:
+        raise ClipFormatError(f"{where}: field 'meta' is not JSON-serialisable: {e}") from None
+    out["meta"] = meta
+
+    J = LAYOUTS[layout].num_joints
+
+    # keypoints
+    kp = _as_array(values, "keypoints", np.float32, where)
+    if kp.ndim != 3 or kp.shape[1:] != (J, 3):
+        raise ClipFormatError(
+            f"{where}: field 'keypoints' must have shape (T, {J}, 3) for layout {layout!r}, got {kp.shape}"
+        )
+    T = kp.shape[0]
+    if T == 0:
+        raise ClipFormatError(f"{where}: field 'keypoints' has T = 0 frames (an empty clip)")
+    _check_finite(kp, "keypoints", where)
+    conf = kp[..., 2]
+    bad = (conf < 0) | (conf > 1)
+    if bad.any():
+        f = _first_bad_frame(bad)
+        raise ClipFormatError(
+            f"{where}: field 'keypoints' has confidence outside [0, 1] "
+            f"(e.g. {conf[f][bad[f]][0]}), first at frame {f}"
+        )
+    # missing joints store zeros (normalise rather than reject: the coordinates are meaningless)
+    if (conf == 0).any():
+        kp = kp.copy()
+        kp[conf == 0, :2] = 0.0
+    out["keypoints"] = kp
+
+    # camera
+    intr = _as_array(values, "intrinsics", np.float64, where)
+    if intr.shape != (4,):
+        raise ClipFormatError(f"{where}: field 'intrinsics' must have shape (4,) (fx, fy, cx, cy), got {intr.shape}")
+    _check_finite(intr, "intrinsics", where, per_frame=False)
+    if not (intr[0] > 0 and intr[1] > 0):
+        raise ClipFormatError(f"{where}: field 'intrinsics' needs fx, fy > 0, got {intr[:2].tolist()}")
+    out["intrinsics"] = intr
+    size = _as_array(values, "image_size", np.float64, where)
+    if size.shape != (2,):
+        raise ClipFormatError(f"{where}: field 'image_size' must have shape (2,) (width, height), got {size.shape}")
+    _check_finite(size, "image_size", where, per_frame=False)
+    if not (np.all(size > 0) and np.all(size == np.round(size))):
+        raise ClipFormatError(f"{where}: field 'image_size' must be positive integers, got {size.tolist()}")
+    out["image_size"] = size.astype(np.int64)
+    if values.get("extrinsics") is not None:
+        E = _as_array(values, "extrinsics", np.float64, where)
+        if E.shape != (4, 4):
+            raise ClipFormatError(f"{where}: field 'extrinsics' must have shape (4, 4), got {E.shape}")
+        _check_finite(E, "extrinsics", where, per_frame=False)
+        R = E[:3, :3]
+        if not np.allclose(E[3], [0, 0, 0, 1], atol=1e-6) or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) \
+                or np.linalg.det(R) < 0:
+            raise ClipFormatError(
+                f"{where}: field 'extrinsics' must be a rigid transform [R t; 0 0 0 1] with R a rotation"
+            )
+        out["extrinsics"] = E
+
+    # ground truth
+    nq = nv = None
+    for key in GT_FIELDS:
+        if values.get(key) is None:
+            continue
+        a = _as_array(values, key, np.float32, where)
+        if a.ndim == 0 or a.shape[0] != T:
+            raise ClipFormatError(
+                f"{where}: field {key!r} has {a.shape[0] if a.ndim else 0} frames but 'keypoints' has {T} "
+                f"(shape {a.shape})"
+            )
+        if key == "gt_q":
+            if a.ndim != 2 or a.shape[1] < 7:
+                raise ClipFormatError(f"{where}: field 'gt_q' must have shape (T, nq >= 7), got {a.shape}")
+            nq = a.shape[1]
+        elif key in ("gt_qd", "gt_tau"):
+            if a.ndim != 2 or a.shape[1] < 6:
+                raise ClipFormatError(f"{where}: field {key!r} must have shape (T, nv >= 6), got {a.shape}")
+            if nv is not None and a.shape[1] != nv:
+                raise ClipFormatError(f"{where}: field {key!r} has nv = {a.shape[1]} but another field has nv = {nv}")
+            nv = a.shape[1]
+        elif key == "gt_keypoints3d":
+            if a.shape[1:] != (J, 3):
+                raise ClipFormatError(f"{where}: field 'gt_keypoints3d' must have shape (T, {J}, 3), got {a.shape}")
+        elif key == "gt_contacts":
+            if a.shape[1:] != (4,):
+                raise ClipFormatError(f"{where}: field 'gt_contacts' must have shape (T, 4), got {a.shape}")
+        elif key == "gt_grf":
+            if a.shape[1:] != (4, 3):
+                raise ClipFormatError(f"{where}: field 'gt_grf' must have shape (T, 4, 3), got {a.shape}")
+        _check_finite(a, key, where)
+        if key == "gt_contacts":
+            bad = (a != 0) & (a != 1)
+            if bad.any():
+                raise ClipFormatError(
+                    f"{where}: field 'gt_contacts' must be 0 or 1, first bad value at frame {_first_bad_frame(bad)}"
+                )
+        out[key] = a
+    if nq is not None and nv is not None and nv != nq - 1:
+        raise ClipFormatError(
+            f"{where}: 'gt_q' has nq = {nq} but velocities/forces have nv = {nv}; a free-root "
+            f"model has nv = nq - 1"
+        )
+    return out
+
+
+# --- I/O ----------------------------------------------------------------------------------
+
+def clip_to_arrays(clip: Clip) -> dict[str, np.ndarray]:
+    """The .npz arrays of a clip (the ``jmocap-clip-1`` keys; absent optional fields omitted)."""
+    arrays: dict[str, np.ndarray] = {
+        "format": np.array(FORMAT),
+        "name": np.array(clip.name),
+        "layout": np.array(clip.layout),
+        "fps": np.array(clip.fps, dtype=np.float64),
+        "meta": np.array(json.dumps(clip.meta, sort_keys=True)),
+    }
+    for key in _ARRAY_FIELDS:
+        v = getattr(clip, key)
+        if v is not None:
+            arrays[key] = np.asarray(v)
+    for key in ("height_m", "mass_kg"):
+        v = getattr(clip, key)
+        if v is not None:
+            arrays[key] = np.array(v, dtype=np.float64)
+    return arrays
+
+
+def atomic_write_npz(path: str | os.PathLike, arrays: dict[str, np.ndarray], compressed: bool = True) -> Path:
+    """Write ``arrays`` to ``path`` as .npz atomically (temp file in the same folder, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            (np.savez_compressed if compressed else np.savez)(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return path
+
+
+def save_clip(path: str | os.PathLike, clip: Clip) -> Path:
+    """Save ``clip`` to ``path`` (a ``.npz`` file), atomically. Returns the path."""
+    if not isinstance(clip, Clip):
+        raise TypeError(f"save_clip expects a Clip, got {type(clip).__name__}")
+    return atomic_write_npz(path, clip_to_arrays(clip))
+
+
+def _str_field(data, key, where, required=True):
+    if key not in data:
+        if required:
+            raise ClipFormatError(f"{where}: missing field {key!r}")
+        return None
+    v = data[key]
+    if v.shape != () or v.dtype.kind not in "US":
+        raise ClipFormatError(f"{where}: field {key!r} must be a string scalar, got {v.dtype} {v.shape}")
+    return str(v)
+
+
+def clip_from_arrays(data, where: str) -> Clip:
+    """Build a Clip from a mapping of .npz arrays; errors name ``where`` (usually the file)."""
+    fmt = _str_field(data, "format", where)
+    if fmt != FORMAT:
+        raise ClipFormatError(f"{where}: field 'format' is {fmt!r}, expected {FORMAT!r}")
+    values: dict[str, Any] = {
+        "name": _str_field(data, "name", where),
+        "layout": _str_field(data, "layout", where),
+    }
+    for key in ("fps", "keypoints", "intrinsics", "image_size"):
+        if key not in data:
+            raise ClipFormatError(f"{where}: missing field {key!r}")
+    fps = data["fps"]
+    if fps.shape != ():
+        raise ClipFormatError(f"{where}: field 'fps' must be a scalar, got shape {fps.shape}")
+    values["fps"] = fps.item()
+    for key in _ARRAY_FIELDS:
+        if key in data:
+            values[key] = data[key]
+    for key in ("height_m", "mass_kg"):
+        if key in data:
+            if data[key].shape != ():
+                raise ClipFormatError(f"{where}: field {key!r} must be a scalar, got shape {data[key].shape}")
+            values[key] = data[key].item()
+    meta_s = _str_field(data, "meta", where, required=False)
+    if meta_s is not None:
+        try:
+            meta = json.loads(meta_s)
+        except json.JSONDecodeError as e:
+            raise ClipFormatError(f"{where}: field 'meta' is not valid JSON: {e}") from None
+        if not isinstance(meta, dict):
+            raise ClipFormatError(f"{where}: field 'meta' must be a JSON object, got {type(meta).__name__}")
+        values["meta"] = meta
+    try:
+        return Clip(**values)
+    except ClipFormatError as e:
+        # re-word "clip 'name'" into the file name
+        msg = str(e)
+        prefix = f"clip {values['name']!r}: "
+        if msg.startswith(prefix):
+            msg = msg[len(prefix):]
+        raise ClipFormatError(f"{where}: {msg}") from None
+
+
+def load_clip(path: str | os.PathLike) -> Clip:
+    """Load and validate a ``jmocap-clip-1`` .npz. Raises :class:`ClipFormatError` on any problem."""
+    path = Path(path)
+    where = str(path)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data = {k: npz[k] for k in npz.files}
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError, EOFError) as e:
+        raise ClipFormatError(f"{where}: not a readable .npz file: {e}") from None
+    return clip_from_arrays(data, where)
+
+
+def is_clip_file(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is an .npz carrying the jmocap clip ``format`` key."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return "format" in npz.files and str(npz["format"]) == FORMAT
+    except Exception:
+        return False
+
+
+__all__ = [
+    "FORMAT",
+    "GT_FIELDS",
+    "Clip",
+    "ClipFormatError",
+    "atomic_write_npz",
+    "clip_from_arrays",
+    "clip_to_arrays",
+    "is_clip_file",
+    "load_clip",
+    "save_clip",
+]
