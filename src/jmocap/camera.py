@@ -77,13 +77,18 @@ class Camera:
         ``extrinsics`` defaults to the identity: the world frame *is* the camera frame.
         """
         dtype = _float_dtype(dtype)
-        intr = jnp.stack(jnp.broadcast_arrays(*(jnp.asarray(a, dtype) for a in (fx, fy, cx, cy))), -1)
-        size = jnp.stack(jnp.broadcast_arrays(jnp.asarray(width, dtype), jnp.asarray(height, dtype)), -1)
-        if extrinsics is None:
-            extr = jnp.broadcast_to(jnp.eye(4, dtype=dtype), intr.shape[:-1] + (4, 4))
+        scalars = [jnp.asarray(a, dtype) for a in (fx, fy, cx, cy, width, height)]
+        extr = None if extrinsics is None else jnp.asarray(extrinsics, dtype)
+        shapes = [a.shape for a in scalars] + ([] if extr is None else [extr.shape[:-2]])
+        batch = jnp.broadcast_shapes(*shapes)  # all fields share one batch shape (for vmap)
+        scalars = [jnp.broadcast_to(a, batch) for a in scalars]
+        intr = jnp.stack(scalars[:4], -1)
+        size = jnp.stack(scalars[4:], -1)
+        if extr is None:
+            extr = jnp.broadcast_to(jnp.eye(4, dtype=dtype), batch + (4, 4))
         else:
-            extr = jnp.asarray(extrinsics, dtype)
-        return cls(intrinsics=intr, image_size=size.astype(dtype), extrinsics=extr)
+            extr = jnp.broadcast_to(extr, batch + (4, 4))
+        return cls(intrinsics=intr, image_size=size, extrinsics=extr)
 
     @classmethod
     def default(cls, width, height, extrinsics=None, dtype=None) -> Camera:
