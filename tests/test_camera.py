@@ -70,7 +70,9 @@ def test_look_at_hand_computed():
     cam = Camera.look_at([0.0, -5.0, 1.0], [0.0, 0.0, 1.0], fx=1000.0, width=1920, height=1080)
     uv, z = project(cam, jnp.array([[0.0, 0.0, 1.0], [1.0, 0.0, 2.0]]), return_depth=True)
     # the target is at the image centre; +x world is image right, +z world (up) is image up
-    np.testing.assert_allclose(np.asarray(uv), [[960.0, 540.0], [960 + 200.0, 540 - 200.0]], rtol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(uv), [[960.0, 540.0], [960 + 200.0, 540 - 200.0]], rtol=1e-6
+    )
     np.testing.assert_allclose(np.asarray(z), [5.0, 5.0], rtol=1e-6)
     np.testing.assert_allclose(np.asarray(cam.position), [0.0, -5.0, 1.0], atol=1e-6)
 
@@ -78,7 +80,14 @@ def test_look_at_hand_computed():
 def test_project_matches_numpy_reference():
     rng = np.random.default_rng(0)
     for _ in range(5):
-        intr = np.array([rng.uniform(300, 2000), rng.uniform(300, 2000), rng.uniform(200, 1000), rng.uniform(200, 800)])
+        intr = np.array(
+            [
+                rng.uniform(300, 2000),
+                rng.uniform(300, 2000),
+                rng.uniform(200, 1000),
+                rng.uniform(200, 800),
+            ]
+        )
         E = _random_extrinsics(rng)
         X = _points_in_front(rng, E, 50)
         cam = Camera.from_intrinsics(*intr, 1920, 1080, extrinsics=E)
@@ -104,7 +113,14 @@ def test_canonicalise_equals_camera_ratio():
     """K_c = [X/Z, Y/Z] of the camera-frame points (eq. 6), for random intrinsics."""
     rng = np.random.default_rng(2)
     for _ in range(5):
-        intr = np.array([rng.uniform(300, 2000), rng.uniform(300, 2000), rng.uniform(200, 1000), rng.uniform(200, 800)])
+        intr = np.array(
+            [
+                rng.uniform(300, 2000),
+                rng.uniform(300, 2000),
+                rng.uniform(200, 1000),
+                rng.uniform(200, 800),
+            ]
+        )
         E = _random_extrinsics(rng)
         X = _points_in_front(rng, E, 17)
         uv_ref, _ = _numpy_project(intr, E, X)
@@ -119,7 +135,11 @@ def test_canonicalise_invariant_to_intrinsics():
     E = _random_extrinsics(rng)
     X = _points_in_front(rng, E, 20 * 25).reshape(20, 25, 3)  # T=20 frames, 25 joints
     results = []
-    for intr in ([500.0, 500.0, 320.0, 240.0], [1500.0, 1400.0, 960.0, 540.0], [1000.0, 1000.0, 0.0, 0.0]):
+    for intr in (
+        [500.0, 500.0, 320.0, 240.0],
+        [1500.0, 1400.0, 960.0, 540.0],
+        [1000.0, 1000.0, 0.0, 0.0],
+    ):
         cam = Camera.from_intrinsics(*intr, 1920, 1080, extrinsics=E)
         uv = project(cam, X)
         kp = jnp.concatenate([uv, jnp.ones(uv.shape[:-1] + (1,))], axis=-1)  # with confidence
@@ -189,11 +209,15 @@ def test_jit_and_vmap_over_cameras():
     Es = np.stack([_random_extrinsics(rng) for _ in range(B)])
     X = np.stack([_points_in_front(rng, Es[b], 30) for b in range(B)])  # (B, 30, 3)
     intr = rng.uniform(500, 1500, (B, 4))
-    cams = Camera.from_intrinsics(intr[:, 0], intr[:, 1], intr[:, 2], intr[:, 3], 1920, 1080, extrinsics=Es)
+    cams = Camera.from_intrinsics(
+        intr[:, 0], intr[:, 1], intr[:, 2], intr[:, 3], 1920, 1080, extrinsics=Es
+    )
     assert cams.batch_shape == (B,)
     f = jax.jit(jax.vmap(project))
     uv = np.asarray(f(cams, jnp.asarray(X, jnp.float32)))
-    uv_bcast = np.asarray(jax.jit(project)(cams, jnp.asarray(X, jnp.float32)))  # prefix broadcasting
+    uv_bcast = np.asarray(
+        jax.jit(project)(cams, jnp.asarray(X, jnp.float32))
+    )  # prefix broadcasting
     for b in range(B):
         ref, _ = _numpy_project(intr[b], Es[b], X[b])
         np.testing.assert_allclose(uv[b], ref, rtol=1e-5, atol=1e-2)
@@ -207,7 +231,9 @@ def test_jit_and_vmap_over_cameras():
     kp = jnp.concatenate([jnp.asarray(uv), jnp.ones((B, 30, 1))], -1)[:, :25]
     kc = jax.jit(jax.vmap(canonicalise))(kp, jnp.asarray(intr, jnp.float32))
     assert kc.shape == (B, 25, 3)
-    krr = jax.jit(jax.vmap(lambda k, s: root_relative(k, s, "body25")))(kp, jnp.full((B, 2), 1000.0))
+    krr = jax.jit(jax.vmap(lambda k, s: root_relative(k, s, "body25")))(
+        kp, jnp.full((B, 2), 1000.0)
+    )
     assert krr.shape == (B, 25, 3)
 
 
@@ -237,10 +263,17 @@ def test_gradients_finite():
     fd = (loss_np(Xp) - loss_np(Xm)) / (2 * eps)
     np.testing.assert_allclose(float(g_X[3, 1]), fd, rtol=1e-3)
     # degenerate inputs: point at depth 0, missing root, missing joints
-    g0 = jax.grad(lambda X: jnp.sum(project(Camera.from_intrinsics(1.0, 1.0, 0.0, 0.0, 2, 2), X)))(jnp.zeros((1, 3)))
+    g0 = jax.grad(lambda X: jnp.sum(project(Camera.from_intrinsics(1.0, 1.0, 0.0, 0.0, 2, 2), X)))(
+        jnp.zeros((1, 3))
+    )
     assert np.all(np.isfinite(np.asarray(g0)))
     kp = jnp.zeros((4, 17, 3))
-    g1 = jax.grad(lambda k: jnp.sum(root_relative(k, (100.0, 100.0), "coco17")) + jnp.sum(canonicalise(k, jnp.ones(4))))(kp)
+    g1 = jax.grad(
+        lambda k: (
+            jnp.sum(root_relative(k, (100.0, 100.0), "coco17"))
+            + jnp.sum(canonicalise(k, jnp.ones(4)))
+        )
+    )(kp)
     assert np.all(np.isfinite(np.asarray(g1)))
 
 

@@ -69,9 +69,7 @@ class Camera:
     extrinsics: Array
 
     @classmethod
-    def from_intrinsics(
-        cls, fx, fy, cx, cy, width, height, extrinsics=None, dtype=None
-    ) -> Camera:
+    def from_intrinsics(cls, fx, fy, cx, cy, width, height, extrinsics=None, dtype=None) -> Camera:
         """Build a camera from scalars (or arrays of matching batch shape).
 
         ``extrinsics`` defaults to the identity: the world frame *is* the camera frame.

@@ -1,5 +1,55 @@
-"""Clip data: the jmocap clip format, readers/writers of detector and dataset formats."""
+"""Clip data: the jmocap clip format and readers/writers of detector and dataset formats."""
 
-from jmocap.data.clip import Clip, ClipFormatError, load_clip, save_clip
+from jmocap.data.clip import Clip, ClipFormatError, FormatError, load_clip, save_clip
+from jmocap.data.formats import (
+    H36M_CAMERAS,
+    Joints3D,
+    Keypoints2D,
+    clean_keypoints,
+    iter_videopose3d,
+    read_amass_joints,
+    read_camera_json,
+    read_clip,
+    read_coco_json,
+    read_keypoint_array,
+    read_keypoints,
+    read_mmpose_json,
+    read_openpose_folder,
+    read_videopose3d,
+    select_person,
+    sidecar_path,
+    write_camera_json,
+    write_coco_results,
+    write_mmpose_json,
+    write_openpose_folder,
+    write_videopose3d,
+)
 
-__all__ = ["Clip", "ClipFormatError", "load_clip", "save_clip"]
+__all__ = [
+    "H36M_CAMERAS",
+    "Clip",
+    "ClipFormatError",
+    "FormatError",
+    "Joints3D",
+    "Keypoints2D",
+    "clean_keypoints",
+    "iter_videopose3d",
+    "load_clip",
+    "read_amass_joints",
+    "read_camera_json",
+    "read_clip",
+    "read_coco_json",
+    "read_keypoint_array",
+    "read_keypoints",
+    "read_mmpose_json",
+    "read_openpose_folder",
+    "read_videopose3d",
+    "save_clip",
+    "select_person",
+    "sidecar_path",
+    "write_camera_json",
+    "write_coco_results",
+    "write_mmpose_json",
+    "write_openpose_folder",
+    "write_videopose3d",
+]

@@ -55,7 +55,11 @@ GT_FIELDS = ("gt_q", "gt_qd", "gt_keypoints3d", "gt_contacts", "gt_tau", "gt_grf
 _ARRAY_FIELDS = ("keypoints", "intrinsics", "image_size", "extrinsics") + GT_FIELDS
 
 
-class ClipFormatError(ValueError):
+class FormatError(ValueError):
+    """A file (or object) that does not follow its format; the message names file, frame, field."""
+
+
+class ClipFormatError(FormatError):
     """A clip file or Clip object that does not follow the ``jmocap-clip-1`` schema."""
 
 
@@ -136,6 +140,7 @@ class Clip:
 
 # --- validation -------------------------------------------------------------------------
 
+
 def _first_bad_frame(bad: np.ndarray) -> int:
     """Index of the first frame (axis 0) where ``bad`` has a True entry."""
     per_frame = bad.reshape(bad.shape[0], -1).any(axis=1)
@@ -147,7 +152,9 @@ def _as_array(values, key, dtype, where):
     try:
         return np.asarray(v, dtype=dtype)
     except (TypeError, ValueError) as e:
-        raise ClipFormatError(f"{where}: field {key!r} cannot be read as {np.dtype(dtype)}: {e}") from None
+        raise ClipFormatError(
+            f"{where}: field {key!r} cannot be read as {np.dtype(dtype)}: {e}"
+        ) from None
 
 
 def _check_finite(arr, key, where, per_frame=True):
@@ -177,7 +184,9 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
     try:
         fps = float(values.get("fps"))
     except (TypeError, ValueError):
-        raise ClipFormatError(f"{where}: field 'fps' must be a number, got {values.get('fps')!r}") from None
+        raise ClipFormatError(
+            f"{where}: field 'fps' must be a number, got {values.get('fps')!r}"
+        ) from None
     if not (np.isfinite(fps) and fps > 0):
         raise ClipFormatError(f"{where}: field 'fps' must be finite and > 0, got {fps}")
     out["fps"] = fps
@@ -187,7 +196,9 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
             try:
                 v = float(v)
             except (TypeError, ValueError):
-                raise ClipFormatError(f"{where}: field {key!r} must be a number, got {v!r}") from None
+                raise ClipFormatError(
+                    f"{where}: field {key!r} must be a number, got {v!r}"
+                ) from None
             if not (np.isfinite(v) and v > 0):
                 raise ClipFormatError(f"{where}: field {key!r} must be finite and > 0, got {v}")
             out[key] = v
@@ -231,26 +242,39 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
     # camera
     intr = _as_array(values, "intrinsics", np.float64, where)
     if intr.shape != (4,):
-        raise ClipFormatError(f"{where}: field 'intrinsics' must have shape (4,) (fx, fy, cx, cy), got {intr.shape}")
+        raise ClipFormatError(
+            f"{where}: field 'intrinsics' must have shape (4,) (fx, fy, cx, cy), got {intr.shape}"
+        )
     _check_finite(intr, "intrinsics", where, per_frame=False)
     if not (intr[0] > 0 and intr[1] > 0):
-        raise ClipFormatError(f"{where}: field 'intrinsics' needs fx, fy > 0, got {intr[:2].tolist()}")
+        raise ClipFormatError(
+            f"{where}: field 'intrinsics' needs fx, fy > 0, got {intr[:2].tolist()}"
+        )
     out["intrinsics"] = intr
     size = _as_array(values, "image_size", np.float64, where)
     if size.shape != (2,):
-        raise ClipFormatError(f"{where}: field 'image_size' must have shape (2,) (width, height), got {size.shape}")
+        raise ClipFormatError(
+            f"{where}: field 'image_size' must have shape (2,) (width, height), got {size.shape}"
+        )
     _check_finite(size, "image_size", where, per_frame=False)
     if not (np.all(size > 0) and np.all(size == np.round(size))):
-        raise ClipFormatError(f"{where}: field 'image_size' must be positive integers, got {size.tolist()}")
+        raise ClipFormatError(
+            f"{where}: field 'image_size' must be positive integers, got {size.tolist()}"
+        )
     out["image_size"] = size.astype(np.int64)
     if values.get("extrinsics") is not None:
         E = _as_array(values, "extrinsics", np.float64, where)
         if E.shape != (4, 4):
-            raise ClipFormatError(f"{where}: field 'extrinsics' must have shape (4, 4), got {E.shape}")
+            raise ClipFormatError(
+                f"{where}: field 'extrinsics' must have shape (4, 4), got {E.shape}"
+            )
         _check_finite(E, "extrinsics", where, per_frame=False)
         R = E[:3, :3]
-        if not np.allclose(E[3], [0, 0, 0, 1], atol=1e-6) or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) \
-                or np.linalg.det(R) < 0:
+        if (
+            not np.allclose(E[3], [0, 0, 0, 1], atol=1e-6)
+            or not np.allclose(R @ R.T, np.eye(3), atol=1e-4)
+            or np.linalg.det(R) < 0
+        ):
             raise ClipFormatError(
                 f"{where}: field 'extrinsics' must be a rigid transform [R t; 0 0 0 1] with R a rotation"
             )
@@ -269,23 +293,35 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
             )
         if key == "gt_q":
             if a.ndim != 2 or a.shape[1] < 7:
-                raise ClipFormatError(f"{where}: field 'gt_q' must have shape (T, nq >= 7), got {a.shape}")
+                raise ClipFormatError(
+                    f"{where}: field 'gt_q' must have shape (T, nq >= 7), got {a.shape}"
+                )
             nq = a.shape[1]
         elif key in ("gt_qd", "gt_tau"):
             if a.ndim != 2 or a.shape[1] < 6:
-                raise ClipFormatError(f"{where}: field {key!r} must have shape (T, nv >= 6), got {a.shape}")
+                raise ClipFormatError(
+                    f"{where}: field {key!r} must have shape (T, nv >= 6), got {a.shape}"
+                )
             if nv is not None and a.shape[1] != nv:
-                raise ClipFormatError(f"{where}: field {key!r} has nv = {a.shape[1]} but another field has nv = {nv}")
+                raise ClipFormatError(
+                    f"{where}: field {key!r} has nv = {a.shape[1]} but another field has nv = {nv}"
+                )
             nv = a.shape[1]
         elif key == "gt_keypoints3d":
             if a.shape[1:] != (J, 3):
-                raise ClipFormatError(f"{where}: field 'gt_keypoints3d' must have shape (T, {J}, 3), got {a.shape}")
+                raise ClipFormatError(
+                    f"{where}: field 'gt_keypoints3d' must have shape (T, {J}, 3), got {a.shape}"
+                )
         elif key == "gt_contacts":
             if a.shape[1:] != (4,):
-                raise ClipFormatError(f"{where}: field 'gt_contacts' must have shape (T, 4), got {a.shape}")
+                raise ClipFormatError(
+                    f"{where}: field 'gt_contacts' must have shape (T, 4), got {a.shape}"
+                )
         elif key == "gt_grf":
             if a.shape[1:] != (4, 3):
-                raise ClipFormatError(f"{where}: field 'gt_grf' must have shape (T, 4, 3), got {a.shape}")
+                raise ClipFormatError(
+                    f"{where}: field 'gt_grf' must have shape (T, 4, 3), got {a.shape}"
+                )
         _check_finite(a, key, where)
         if key == "gt_contacts":
             bad = (a != 0) & (a != 1)
@@ -303,6 +339,7 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
 
 
 # --- I/O ----------------------------------------------------------------------------------
+
 
 def clip_to_arrays(clip: Clip) -> dict[str, np.ndarray]:
     """The .npz arrays of a clip (the ``jmocap-clip-1`` keys; absent optional fields omitted)."""
@@ -324,7 +361,9 @@ def clip_to_arrays(clip: Clip) -> dict[str, np.ndarray]:
     return arrays
 
 
-def atomic_write_npz(path: str | os.PathLike, arrays: dict[str, np.ndarray], compressed: bool = True) -> Path:
+def atomic_write_npz(
+    path: str | os.PathLike, arrays: dict[str, np.ndarray], compressed: bool = True
+) -> Path:
     """Write ``arrays`` to ``path`` as .npz atomically (temp file in the same folder, then rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -358,7 +397,9 @@ def _str_field(data, key, where, required=True):
         return None
     v = data[key]
     if v.shape != () or v.dtype.kind not in "US":
-        raise ClipFormatError(f"{where}: field {key!r} must be a string scalar, got {v.dtype} {v.shape}")
+        raise ClipFormatError(
+            f"{where}: field {key!r} must be a string scalar, got {v.dtype} {v.shape}"
+        )
     return str(v)
 
 
@@ -384,7 +425,9 @@ def clip_from_arrays(data, where: str) -> Clip:
     for key in ("height_m", "mass_kg"):
         if key in data:
             if data[key].shape != ():
-                raise ClipFormatError(f"{where}: field {key!r} must be a scalar, got shape {data[key].shape}")
+                raise ClipFormatError(
+                    f"{where}: field {key!r} must be a scalar, got shape {data[key].shape}"
+                )
             values[key] = data[key].item()
     meta_s = _str_field(data, "meta", where, required=False)
     if meta_s is not None:
@@ -393,7 +436,9 @@ def clip_from_arrays(data, where: str) -> Clip:
         except json.JSONDecodeError as e:
             raise ClipFormatError(f"{where}: field 'meta' is not valid JSON: {e}") from None
         if not isinstance(meta, dict):
-            raise ClipFormatError(f"{where}: field 'meta' must be a JSON object, got {type(meta).__name__}")
+            raise ClipFormatError(
+                f"{where}: field 'meta' must be a JSON object, got {type(meta).__name__}"
+            )
         values["meta"] = meta
     try:
         return Clip(**values)
@@ -402,7 +447,7 @@ def clip_from_arrays(data, where: str) -> Clip:
         msg = str(e)
         prefix = f"clip {values['name']!r}: "
         if msg.startswith(prefix):
-            msg = msg[len(prefix):]
+            msg = msg[len(prefix) :]
         raise ClipFormatError(f"{where}: {msg}") from None
 
 
@@ -415,8 +460,10 @@ def load_clip(path: str | os.PathLike) -> Clip:
             data = {k: npz[k] for k in npz.files}
     except FileNotFoundError:
         raise
-    except (OSError, ValueError, EOFError) as e:
-        raise ClipFormatError(f"{where}: not a readable .npz file: {e}") from None
+    except Exception as e:  # BadZipFile, zlib.error, truncated members, non-npz bytes ...
+        raise ClipFormatError(
+            f"{where}: not a readable .npz file: {type(e).__name__}: {e}"
+        ) from None
     return clip_from_arrays(data, where)
 
 
@@ -434,6 +481,7 @@ __all__ = [
     "GT_FIELDS",
     "Clip",
     "ClipFormatError",
+    "FormatError",
     "atomic_write_npz",
     "clip_from_arrays",
     "clip_to_arrays",
