@@ -10,8 +10,10 @@ rescaled to a subject's height and mass) and returns a :class:`Model`:
   axes, site offsets, ...). They are numpy float64 arrays: JAX turns them into float32 or
   float64 device arrays depending on ``jax_enable_x64``, so one ``Model`` serves both.
   Being pytree leaves, they can be differentiated (system identification) or vmapped.
-* ``mj`` — the underlying ``mujoco.MjModel`` (static, for MuJoCo C reference calls,
-  rendering, simulation) and ``mjx`` — the ``mjx.Model`` built from it.
+* ``mj`` — the underlying ``mujoco.MjModel`` (for MuJoCo C reference calls, rendering,
+  simulation; carried as static data that does not enter jit's cache key, so rescaled
+  subjects share compiled code) and ``mjx`` — the ``mjx.Model`` built from it (a pytree
+  child; ``model.replace(mjx=None)`` drops it, e.g. to vmap over subjects).
 
 Supported joints: a free joint on a child of the world (the floating root), and any number of
 hinge and slide joints per body (MuJoCo applies them in order). Ball joints are rejected with a
@@ -50,6 +52,26 @@ def _import_mjx():
             warnings.simplefilter("ignore")
             from mujoco import mjx
     return mjx
+
+
+class _Handle:
+    """Carries a Python object (the MjModel) through a pytree without entering jit's cache key.
+
+    All handles compare equal, so models that differ only in their numbers (a subject scaled
+    to another height) share compiled code. Traced code must therefore never read the
+    object it holds; jmocap's physics reads only the Model's arrays.
+    """
+
+    __slots__ = ("obj",)
+
+    def __init__(self, obj):
+        self.obj = obj
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, _Handle)
+
+    def __hash__(self) -> int:
+        return 0
 
 
 @dataclass(frozen=True)
@@ -148,7 +170,7 @@ class Model:
     """A MuJoCo character as a pytree: see the module docstring."""
 
     topo: Topology = struct.field(pytree_node=False)
-    mj: Any = struct.field(pytree_node=False)
+    mj_handle: _Handle = struct.field(pytree_node=False)
     mjx: Any
     # numeric parameters (numpy float64; see module docstring)
     body_pos: np.ndarray  # (nbody, 3) offset from the parent frame
@@ -169,6 +191,11 @@ class Model:
     timestep: float = struct.field(pytree_node=False, default=0.01)
 
     # ---- convenience -------------------------------------------------------------------
+
+    @property
+    def mj(self) -> mujoco.MjModel:
+        """The compiled ``mujoco.MjModel`` (MuJoCo C reference, simulation, rendering)."""
+        return self.mj_handle.obj
 
     @property
     def nq(self) -> int:
@@ -304,7 +331,7 @@ def _scaled_model(path: Path, height_m: float | None, mass_kg: float | None) -> 
         if np.all(np.isfinite(fromto)):
             site.fromto = fromto * s
     free_qadr = [
-        base.jnt_qposadr[j] for j in range(base.njnt) if base.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE
+        base.jnt_qposadr[j] for j in range(base.njnt) if int(base.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_FREE)
     ]
     for key in spec.keys:
         qpos = np.array(key.qpos)
@@ -356,7 +383,7 @@ def from_mjmodel(mj: mujoco.MjModel, *, with_mjx: bool = True) -> Model:
     slot_qpos0 = np.zeros((nbody, nslot))
     for b, js in enumerate(per_body):
         for s, j in enumerate(js):
-            slot_type[b, s] = SLOT_HINGE if mj.jnt_type[j] == J.mjJNT_HINGE else SLOT_SLIDE
+            slot_type[b, s] = SLOT_HINGE if int(mj.jnt_type[j]) == int(J.mjJNT_HINGE) else SLOT_SLIDE
             slot_qadr[b, s] = mj.jnt_qposadr[j]
             slot_dof[b, s] = mj.jnt_dofadr[j]
             slot_jnt[b, s] = j
@@ -376,7 +403,7 @@ def from_mjmodel(mj: mujoco.MjModel, *, with_mjx: bool = True) -> Model:
     q_lower = np.full(mj.nq, -np.inf)
     q_upper = np.full(mj.nq, np.inf)
     for j in range(mj.njnt):
-        if mj.jnt_limited[j] and mj.jnt_type[j] in (J.mjJNT_HINGE, J.mjJNT_SLIDE):
+        if mj.jnt_limited[j] and int(mj.jnt_type[j]) in (int(J.mjJNT_HINGE), int(J.mjJNT_SLIDE)):
             a = mj.jnt_qposadr[j]
             q_lower[a], q_upper[a] = mj.jnt_range[j]
 
@@ -420,7 +447,7 @@ def from_mjmodel(mj: mujoco.MjModel, *, with_mjx: bool = True) -> Model:
 
     return Model(
         topo=topo,
-        mj=mj,
+        mj_handle=_Handle(mj),
         mjx=mjx_model,
         body_pos=np.array(mj.body_pos, np.float64),
         body_rot=_quat2mat_np(np.array(mj.body_quat)),
