@@ -1,0 +1,1609 @@
+"""Synthetic motion clips with exact ground truth: a procedural motion generator on MuJoCo.
+
+See ``docs/data.md`` for the full description. In short:
+
+* :func:`generate_motion` plans a motion (walking, running, jumps, squats, lunges, kicks,
+  standing with arm motion, dance-like stepping, and transitions between them) for a
+  character of random height, as footsteps + a centre-of-mass (COM) trajectory + upper-body
+  joint tracks, and turns it into MuJoCo joint angles:
+
+  - every foot contact is a *stance* on a planned footstep: the foot is flat, or rocks about
+    the heel contact point (heel strike) or about the ball of the foot (heel off / toe off);
+    the rocking pivot stays exactly where it is (no sliding);
+  - the horizontal COM trajectory is solved from the support phases (a least-squares
+    "dynamics filter" on the linear inverted pendulum: the zero-moment point stays on the
+    loaded feet; ballistic, ``x'' = 0``, while no foot touches the floor);
+  - the root (pelvis) height follows a ``g = 9.81`` parabola whenever both feet are off the
+    floor (running, jumps);
+  - the legs are solved by Gauss-Newton inverse kinematics on MuJoCo C Jacobians
+    (``mj_jacBody``) so that the feet are exactly where planned; every joint is clipped to
+    its range.
+
+* :func:`generate_clip` adds ground truth (``gt_q``, ``gt_qd`` by ``mj_differentiatePos``,
+  3D keypoints, Rempe et al.'s contact labels), optionally tracks the motion in a MuJoCo
+  simulation (``physics=True``: PD + inverse-dynamics feed-forward on the hinges and a
+  residual root force/torque, giving ``gt_tau`` and ``gt_grf``), samples a static camera
+  and projects noisy 2D keypoints (:class:`Corruption`).
+
+Everything is deterministic for a seed: a clip's random stream is
+``numpy.random.default_rng([seed, index])``.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import mujoco
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.interpolate import PchipInterpolator
+from scipy.ndimage import gaussian_filter1d, maximum_filter1d
+from scipy.optimize import nnls
+
+from jmocap.data.clip import Clip
+from jmocap.layouts import CONTACT_SITES, get_layout
+from jmocap.model import load_model
+
+GRAVITY = 9.81
+GENERATOR = "jmocap.data.synthetic/1"
+
+# Rempe et al. (2020), Sec. 3.2: a heel/toe point is in contact when it moved less than 2 cm
+# since the previous frame and is less than 5 cm above the floor.
+CONTACT_MAX_STEP_M = 0.02
+CONTACT_MAX_HEIGHT_M = 0.05
+
+_DEBUG = False
+MOTION_KINDS = ("walk", "run", "jump", "squat", "lunge", "kick", "stand", "dance")
+
+
+class GenerationError(RuntimeError):
+    """A motion attempt that failed validation (the generator retries with new draws)."""
+
+
+# =========================================================================================
+# small numpy math
+# =========================================================================================
+
+
+def _rx(a):
+    a = np.asarray(a, float)
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros(a.shape + (3, 3))
+    R[..., 0, 0] = 1.0
+    R[..., 1, 1], R[..., 1, 2], R[..., 2, 1], R[..., 2, 2] = c, -s, s, c
+    return R
+
+
+def _ry(a):
+    a = np.asarray(a, float)
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros(a.shape + (3, 3))
+    R[..., 1, 1] = 1.0
+    R[..., 0, 0], R[..., 0, 2], R[..., 2, 0], R[..., 2, 2] = c, s, -s, c
+    return R
+
+
+def _rz(a):
+    a = np.asarray(a, float)
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros(a.shape + (3, 3))
+    R[..., 2, 2] = 1.0
+    R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1] = c, -s, s, c
+    return R
+
+
+def _log_rot(R):
+    """Rotation vectors (..., 3) of rotation matrices (..., 3, 3)."""
+    R = np.asarray(R, float)
+    tr = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    th = np.arccos(tr)
+    v = np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
+    )
+    s = np.sin(th)
+    small = s < 1e-6
+    scale = np.where(small, 0.5 + th**2 / 12.0, th / (2.0 * np.where(small, 1.0, s)))
+    w = v * scale[..., None]
+    # near pi: use the symmetric part
+    near_pi = (th > np.pi - 1e-3)
+    if np.any(near_pi):
+        Rp = R[near_pi]
+        out = []
+        for Ri, thi in zip(Rp, th[near_pi], strict=True):
+            B = (Ri + np.eye(3)) / 2.0
+            k = int(np.argmax(np.diag(B)))
+            axis = B[:, k] / math.sqrt(max(B[k, k], 1e-12))
+            out.append(axis * thi)
+        w[near_pi] = np.array(out)
+    return w
+
+
+def _exp_rot(w):
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (Rodrigues)."""
+    w = np.asarray(w, float)
+    th = np.linalg.norm(w, axis=-1)
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    k = w / ths[..., None]
+    K = np.zeros(w.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -k[..., 2], k[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = k[..., 2], -k[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -k[..., 1], k[..., 0]
+    s = np.where(small, 0.0, np.sin(th))[..., None, None]
+    c = np.where(small, 0.0, 1.0 - np.cos(th))[..., None, None]
+    return np.eye(3) + s * K + c * (K @ K)
+
+
+def _slerp_R(R0, R1, h):
+    """Geodesic interpolation of rotation matrices: ``R0 exp(h log(R0^T R1))``."""
+    h = np.asarray(h, float)
+    d = _log_rot(np.swapaxes(R0, -1, -2) @ R1)
+    return R0 @ _exp_rot(d * h[..., None])
+
+
+def _mat2quat(R):
+    """wxyz quaternions (..., 4) of rotation matrices (..., 3, 3), w >= 0."""
+    R = np.asarray(R, float)
+    shp = R.shape[:-2]
+    R = R.reshape(-1, 3, 3)
+    q = np.empty((R.shape[0], 4))
+    for i, Ri in enumerate(R):
+        mujoco.mju_mat2Quat(q[i], Ri.reshape(9))
+    q[q[:, 0] < 0] *= -1.0
+    return q.reshape(shp + (4,))
+
+
+def _quat2mat(q):
+    q = np.asarray(q, float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    R[..., 0, 1] = 2 * (x * y - w * z)
+    R[..., 0, 2] = 2 * (x * z + w * y)
+    R[..., 1, 0] = 2 * (x * y + w * z)
+    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    R[..., 1, 2] = 2 * (y * z - w * x)
+    R[..., 2, 0] = 2 * (x * z - w * y)
+    R[..., 2, 1] = 2 * (y * z + w * x)
+    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def _continuous_quats(q):
+    """Flip signs so consecutive quaternions lie in the same hemisphere."""
+    q = np.array(q, float)
+    for t in range(1, len(q)):
+        if np.dot(q[t], q[t - 1]) < 0:
+            q[t] = -q[t]
+    return q
+
+
+def _smoothstep(s):
+    """Quintic 0 -> 1 on [0, 1] with zero first and second derivatives at both ends."""
+    s = np.clip(s, 0.0, 1.0)
+    return s * s * s * (10.0 + s * (-15.0 + 6.0 * s))
+
+
+def _bump(s):
+    """0 at s = 0 and 1, peak 1 at 0.5, zero slope at both ends."""
+    s = np.clip(s, 0.0, 1.0)
+    return 16.0 * s * s * (1.0 - s) ** 2
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+class _Track:
+    """A scalar function of time through knots (t, value): monotone cubic (PCHIP), constant
+    outside the knots. A single knot is a constant."""
+
+    def __init__(self, knots):
+        knots = sorted(knots, key=lambda k: k[0])
+        ts = [knots[0][0]]
+        vs = [knots[0][1]]
+        for t, v in knots[1:]:
+            if t - ts[-1] < 1e-9:  # a repeated time: the later value wins (a step is not allowed)
+                vs[-1] = v
+                continue
+            ts.append(t)
+            vs.append(v)
+        self.t = np.array(ts, float)
+        self.v = np.array(vs, float)
+        self._f = PchipInterpolator(self.t, self.v, extrapolate=False) if len(ts) > 1 else None
+
+    def __call__(self, t):
+        t = np.asarray(t, float)
+        if self._f is None:
+            return np.full(t.shape, self.v[0])
+        out = self._f(np.clip(t, self.t[0], self.t[-1]))
+        return np.asarray(out, float)
+
+
+# =========================================================================================
+# the character
+# =========================================================================================
+
+SIDES = ("left", "right")
+
+
+@dataclass
+class _Leg:
+    side: str
+    hip_body: int
+    ankle_body: int
+    toe_body: int
+    ik_qadr: np.ndarray  # qpos addresses of hip (3), knee (1), ankle (3) hinges
+    ik_dof: np.ndarray
+    toe_qadr: int
+    pref_w: np.ndarray  # null-space preference weights over the IK joints
+    hip_offset: np.ndarray  # hip joint centre in the pelvis frame
+    A0_R: np.ndarray  # ankle body rotation in the foot ground frame (standing, flat)
+    A0_p: np.ndarray  # ankle body origin in the foot ground frame
+    heel_G: np.ndarray  # heel contact site in the ground frame (z = 0)
+    toe_G: np.ndarray  # toe contact site in the ground frame (z = 0)
+    ball_G: np.ndarray  # toe joint anchor (ball of the foot) in the ground frame
+    toe_sign: float  # q_toe = q_toe0 - toe_sign * phi keeps the toes flat in a toe rocker
+    q_toe0: float
+    toe_rest_R: np.ndarray  # toe body rotation relative to the ankle body at q_toe = 0
+    toe_rest_p: np.ndarray  # toe body origin in the ankle body frame
+    toe_axis: np.ndarray  # toe hinge axis in the toe body frame
+    pts_ankle: np.ndarray  # (n, 3) foot points on the ankle body (sites + sole box corners)
+    pts_toe: np.ndarray  # (m, 3) foot points on the toe body
+    yaw0: float  # foot yaw at stand
+    chain: list = field(default_factory=list)  # [(body_pos, body_R, [(axis, jnt_pos, qpos0)])]
+
+
+class Character:
+    """A scaled humanoid and everything the generator precomputes about it.
+
+    Wraps a :class:`jmocap.Model` (``load_model(height_m=...)``) and a scratch ``MjData``.
+    Joint names follow ``models/mjcf/humanoid.xml`` (SMPL bodies, ``<body>_x/_y/_z`` hinges).
+    """
+
+    def __init__(self, model):
+        self.model = model
+        mj = self.mj = model.mj
+        self.d = mujoco.MjData(mj)
+        self.nq, self.nv = mj.nq, mj.nv
+        self.q_stand = np.array(model.keyframe("stand"), float)
+        # joint ranges straight from MuJoCo (the same data as model.q_lower / q_upper)
+        self.lower = np.full(mj.nq, -np.inf)
+        self.upper = np.full(mj.nq, np.inf)
+        for j in range(mj.njnt):
+            if mj.jnt_limited[j] and int(mj.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_HINGE),
+                                                             int(mujoco.mjtJoint.mjJNT_SLIDE)):
+                a = int(mj.jnt_qposadr[j])
+                self.lower[a], self.upper[a] = mj.jnt_range[j]
+        self.mass = float(np.sum(mj.body_mass))
+        self.pelvis = mj.body("pelvis").id
+        self.qadr: dict[str, int] = {}
+        for j in range(mj.njnt):
+            if mj.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
+                self.qadr[mj.joint(j).name] = int(mj.jnt_qposadr[j])
+        d = self.d
+        d.qpos[:] = self.q_stand
+        mujoco.mj_kinematics(mj, d)
+        mujoco.mj_comPos(mj, d)
+        self.pelvis_p0 = d.xpos[self.pelvis].copy()
+        self.z_stand = float(self.pelvis_p0[2])
+        self.height = float(d.site_xpos[mj.site("kp_head_top").id, 2])
+        self.com0 = d.subtree_com[self.pelvis].copy() - self.pelvis_p0
+        self.contact_sites = np.array([mj.site(s).id for s in CONTACT_SITES])
+        self.legs = [self._leg(side) for side in SIDES]
+        self.thigh = float(np.linalg.norm(d.xpos[mj.body("left_knee").id] - d.xpos[mj.body("left_hip").id]))
+        self.shank = float(np.linalg.norm(d.xpos[mj.body("left_ankle").id] - d.xpos[mj.body("left_knee").id]))
+        self.reach = self.thigh + self.shank
+        self.scale = self.height / 1.75
+        # keypoint sites (every kp_* site) for validation
+        self.kp_sites = np.array([i for i in range(mj.nsite) if mj.site(i).name.startswith("kp_")])
+        self.check_sites = np.concatenate([self.kp_sites, self.contact_sites])
+
+    # ---- construction helpers ---------------------------------------------------------
+
+    def _hinges_of(self, body: int) -> list[int]:
+        mj = self.mj
+        return [
+            j for j in range(mj.njnt)
+            if mj.jnt_bodyid[j] == body and mj.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE
+        ]
+
+    def _leg(self, side: str) -> _Leg:
+        mj, d = self.mj, self.d
+        hip, knee = mj.body(f"{side}_hip").id, mj.body(f"{side}_knee").id
+        ankle, toe = mj.body(f"{side}_ankle").id, mj.body(f"{side}_foot").id
+        joints = self._hinges_of(hip) + self._hinges_of(knee) + self._hinges_of(ankle)
+        toe_j = self._hinges_of(toe)
+        if len(toe_j) != 1:
+            raise ValueError(f"expected one toe hinge on body {side}_foot, got {len(toe_j)}")
+        ik_qadr = np.array([mj.jnt_qposadr[j] for j in joints])
+        ik_dof = np.array([mj.jnt_dofadr[j] for j in joints])
+        names = [mj.joint(j).name for j in joints]
+        # null-space preference: no hip axial rotation, no ankle ab/adduction / inversion
+        pref_w = np.array(
+            [1.0 if (n.startswith(f"{side}_hip_z") or n.startswith(f"{side}_ankle_z")
+                     or n.startswith(f"{side}_ankle_x")) else 0.0 for n in names]
+        )
+        R_pel = d.xmat[self.pelvis].reshape(3, 3)
+        hip_offset = R_pel.T @ (d.xpos[hip] - d.xpos[self.pelvis])
+        heel_w = d.site_xpos[mj.site(f"contact_{side}_heel").id].copy()
+        toe_w = d.site_xpos[mj.site(f"contact_{side}_toe").id].copy()
+        if abs(heel_w[2]) > 1e-3 or abs(toe_w[2]) > 1e-3:
+            raise ValueError("keyframe 'stand' must have the contact sites on the floor (z = 0)")
+        fwd = toe_w - heel_w
+        yaw0 = math.atan2(fwd[1], fwd[0])
+        origin = np.array([(heel_w[0] + toe_w[0]) / 2, (heel_w[1] + toe_w[1]) / 2, 0.0])
+        RG = _rz(yaw0)
+        to_G = lambda p: RG.T @ (p - origin)  # noqa: E731
+        A_R = d.xmat[ankle].reshape(3, 3).copy()
+        A0_R = RG.T @ A_R
+        A0_p = to_G(d.xpos[ankle])
+        heel_G, toe_G = to_G(heel_w), to_G(toe_w)
+        heel_G[2] = toe_G[2] = 0.0
+        ball_G = to_G(d.xpos[toe])
+        toe_qadr = int(mj.jnt_qposadr[toe_j[0]])
+        toe_axis = np.array(mj.jnt_axis[toe_j[0]], float)
+        q_toe0 = float(self.q_stand[toe_qadr])
+        R_toe_rel0 = A_R.T @ d.xmat[toe].reshape(3, 3)  # toe relative to ankle at stand
+        # toe_rest_R: relative rotation at q_toe = 0
+        toe_rest_R = R_toe_rel0 @ _exp_rot(-toe_axis * q_toe0)
+        toe_rest_p = A_R.T @ (d.xpos[toe] - d.xpos[ankle])
+        # the toe-rocker rotation Ry(phi) about the ground frame's lateral axis, seen in the
+        # toe body frame, must be the toe hinge axis (or its negative)
+        lateral_in_toe = (A0_R @ R_toe_rel0).T @ np.array([0.0, 1.0, 0.0])
+        toe_sign = float(np.dot(lateral_in_toe, toe_axis))
+        if abs(abs(toe_sign) - 1.0) > 1e-6:
+            raise ValueError(f"{side} toe hinge is not the foot's lateral axis")
+
+        pts_a, pts_t = [], []
+        for body, pts in ((ankle, pts_a), (toe, pts_t)):
+            for s in range(mj.nsite):
+                if mj.site_bodyid[s] == body:
+                    pts.append(np.array(mj.site_pos[s]))
+            for g in range(mj.ngeom):
+                if mj.geom_bodyid[g] == body and mj.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
+                    R = _quat2mat(mj.geom_quat[g])
+                    for sx in (-1, 1):
+                        for sy in (-1, 1):
+                            for sz in (-1, 1):
+                                pts.append(mj.geom_pos[g] + R @ (mj.geom_size[g] * [sx, sy, sz]))
+        chain = []
+        for b in (hip, knee, ankle):
+            js = [(np.array(mj.jnt_axis[j], float), np.array(mj.jnt_pos[j], float),
+                   float(mj.qpos0[mj.jnt_qposadr[j]])) for j in self._hinges_of(b)]
+            chain.append((np.array(mj.body_pos[b], float), _quat2mat(mj.body_quat[b]), js))
+        return _Leg(
+            chain=chain, side=side, hip_body=hip, ankle_body=ankle, toe_body=toe, ik_qadr=ik_qadr,
+            ik_dof=ik_dof, toe_qadr=toe_qadr, pref_w=pref_w, hip_offset=hip_offset,
+            A0_R=A0_R, A0_p=A0_p, heel_G=heel_G, toe_G=toe_G, ball_G=ball_G,
+            toe_sign=toe_sign, q_toe0=q_toe0, toe_rest_R=toe_rest_R, toe_rest_p=toe_rest_p,
+            toe_axis=toe_axis, pts_ankle=np.array(pts_a), pts_toe=np.array(pts_t), yaw0=yaw0,
+        )
+
+    # ---- foot geometry ----------------------------------------------------------------
+
+    def stance_pose(self, leg: int, G, phi):
+        """Ankle body pose and toe angle of a foot planted on ground frame ``G = (x, y, yaw)``,
+        rocked by ``phi`` (< 0: about the heel contact point, toes up; > 0: about the ball of
+        the foot, heel up, toes kept flat). Vectorised over leading dims of G / phi."""
+        L = self.legs[leg]
+        G = np.asarray(G, float)
+        phi = np.asarray(phi, float)
+        shape = np.broadcast_shapes(G.shape[:-1], phi.shape)
+        G = np.broadcast_to(G, shape + (3,))
+        phi = np.broadcast_to(phi, shape)
+        pivot = np.where((phi < 0)[..., None], L.heel_G, L.ball_G)
+        Rp = _ry(phi)
+        R_loc = Rp @ L.A0_R
+        p_loc = pivot + np.einsum("...ij,...j->...i", Rp, L.A0_p - pivot)
+        RG = _rz(G[..., 2])
+        R = RG @ R_loc
+        p = np.einsum("...ij,...j->...i", RG, p_loc)
+        p[..., 0] += G[..., 0]
+        p[..., 1] += G[..., 1]
+        toe = L.q_toe0 - L.toe_sign * np.maximum(phi, 0.0)
+        return R, p, toe
+
+    def foot_points(self, leg: int, R, p, toe):
+        """World positions (..., n, 3) of the foot points for ankle pose (R, p) and toe angle."""
+        L = self.legs[leg]
+        pa = np.einsum("...ij,nj->...ni", R, L.pts_ankle) + p[..., None, :]
+        Rt = R @ L.toe_rest_R @ _exp_rot(np.asarray(toe)[..., None] * L.toe_axis)
+        pt0 = p + np.einsum("...ij,j->...i", R, L.toe_rest_p)
+        pt = np.einsum("...ij,nj->...ni", Rt, L.pts_toe) + pt0[..., None, :]
+        return np.concatenate([pa, pt], axis=-2)
+
+    def contact_points_G(self, leg: int, G):
+        """Heel and toe contact points (world) of a flat foot on ground frame G: (..., 2, 3)."""
+        L = self.legs[leg]
+        G = np.asarray(G, float)
+        RG = _rz(G[..., 2])
+        pts = np.einsum("...ij,nj->...ni", RG, np.stack([L.heel_G, L.toe_G]))
+        pts[..., 0] += G[..., None, 0]
+        pts[..., 1] += G[..., None, 1]
+        return pts
+
+    def stand_feet(self, x=0.0, y=0.0, yaw=0.0, width=None, toe_out=0.0):
+        """Ground frames of both feet standing at (x, y) facing ``yaw``."""
+        feet = []
+        for i, L in enumerate(self.legs):
+            side = 1.0 if i == 0 else -1.0
+            if width is None:
+                off = np.array([0.0, side * abs(L.heel_G[1] * 0 + self._stand_half_width())])
+            else:
+                off = np.array([0.0, side * width / 2])
+            c, s = math.cos(yaw), math.sin(yaw)
+            feet.append(np.array([x + c * off[0] - s * off[1], y + s * off[0] + c * off[1],
+                                  yaw + side * toe_out]))
+        return feet
+
+    def _stand_half_width(self):
+        return abs(self.legs[0].hip_offset[1])
+
+    # ---- inverse kinematics -----------------------------------------------------------
+
+    def leg_fk(self, leg: int, R_pel, p_pel, ql):
+        """Ankle body pose and its Jacobian w.r.t. the 7 leg hinges, vectorised over frames.
+
+        A numpy transcription of MuJoCo's ``mj_kinematics`` for the hinge chain pelvis -> hip
+        -> knee -> ankle (``tests/test_synthetic.py`` checks it against MuJoCo C).
+        Returns (R (B, 3, 3), p (B, 3), J (B, 6, 7): rows = linear, angular).
+        """
+        L = self.legs[leg]
+        R, p = R_pel, p_pel
+        axes, anchors = [], []
+        col = 0
+        for bpos, bR, joints in L.chain:
+            p = p + np.einsum("bij,j->bi", R, bpos)
+            R = R @ bR
+            for axis, jpos, q0 in joints:
+                anchor = p + np.einsum("bij,j->bi", R, jpos)
+                axes.append(np.einsum("bij,j->bi", R, axis))
+                anchors.append(anchor)
+                R = R @ _exp_rot((ql[:, col] - q0)[:, None] * axis)
+                p = anchor - np.einsum("bij,j->bi", R, jpos)
+                col += 1
+        aw = np.stack(axes, axis=-1)  # (B, 3, 7)
+        an = np.stack(anchors, axis=-1)
+        Jp = np.cross(aw, p[:, :, None] - an, axis=1)
+        return R, p, np.concatenate([Jp, aw], axis=1)
+
+    def solve_legs(self, q, R_t, p_t, iters=40, tol_p=1e-7, tol_r=5e-7, damping=1e-6, lower=None):
+        """Leg IK for all frames at once, in place in ``q`` (T, nq), warm-started from the leg
+        angles already in ``q``: damped Gauss-Newton with a trust region, a null-space pull
+        towards no hip/ankle axial rotation, and clipping to the joint ranges.
+
+        Returns (T, 2) residuals (max abs position error in metres) per frame and leg.
+        """
+        T = len(q)
+        R_pel = _quat2mat(q[:, 3:7])
+        p_pel = q[:, 0:3]
+        res = np.zeros((T, 2))
+        eye6 = np.eye(6) * damping
+        for f, L in enumerate(self.legs):
+            idx = L.ik_qadr
+            lo, hi = (self.lower if lower is None else lower)[idx], self.upper[idx]
+            ql = q[:, idx].copy()
+            active = np.ones(T, bool)
+            for _it in range(iters):
+                a = np.nonzero(active)[0]
+                if _DEBUG:
+                    print("   leg", f, "iter", _it, "active", len(a))
+                if len(a) == 0:
+                    break
+                R, p, J = self.leg_fk(f, R_pel[a], p_pel[a], ql[a])
+                ep = p_t[f, a] - p
+                er = _log_rot(R_t[f, a] @ np.swapaxes(R, -1, -2))
+                conv = (np.max(np.abs(ep), axis=1) < tol_p) & (np.max(np.abs(er), axis=1) < tol_r)
+                active[a[conv]] = False
+                res[a, f] = np.max(np.abs(ep), axis=1)
+                keep = ~conv
+                a, J, ep, er = a[keep], J[keep], ep[keep], er[keep]
+                if len(a) == 0:
+                    break
+                e = np.concatenate([ep, er], axis=1)
+                Jt = np.swapaxes(J, -1, -2)
+                W = np.linalg.solve(J @ Jt + eye6, np.broadcast_to(np.eye(6), (len(a), 6, 6)))
+                Jpinv = Jt @ W  # (n, 7, 6)
+                dq = np.einsum("nij,nj->ni", Jpinv, e)
+                z = -0.5 * L.pref_w * ql[a]
+                dq += z - np.einsum("nij,nj->ni", Jpinv, np.einsum("nij,nj->ni", J, z))
+                big = np.max(np.abs(dq), axis=1, keepdims=True)
+                dq *= np.minimum(1.0, 0.2 / np.maximum(big, 1e-12))
+                new = np.clip(ql[a] + dq, lo, hi)
+                stalled = np.max(np.abs(new - ql[a]), axis=1) < 1e-7  # at a limit / infeasible
+                ql[a] = new
+                active[a[stalled]] = False
+            q[:, idx] = ql
+        return res
+
+    def fk(self, q):
+        """Run kinematics at ``q`` in the scratch data; returns it."""
+        self.d.qpos[:] = q
+        mujoco.mj_kinematics(self.mj, self.d)
+        return self.d
+
+
+_CHAR_CACHE: dict[float, Character] = {}
+
+
+def character(height_m: float) -> Character:
+    """A cached :class:`Character` for a height (rounded to 1 cm)."""
+    h = round(float(height_m), 2)
+    ch = _CHAR_CACHE.get(h)
+    if ch is None:
+        mass = 22.0 * h * h  # BMI 22
+        ch = Character(load_model(height_m=h, mass_kg=mass, with_mjx=False))
+        if len(_CHAR_CACHE) > 64:
+            _CHAR_CACHE.pop(next(iter(_CHAR_CACHE)))
+        _CHAR_CACHE[h] = ch
+    return ch
+
+
+# =========================================================================================
+# motion plan: stances (footsteps), segments (pelvis / upper-body tracks)
+# =========================================================================================
+
+
+@dataclass
+class Stance:
+    """One contact of one foot with the floor, on ground frame ``G = (x, y, yaw)``.
+
+    ``phi`` knots (t, angle) rock the foot during the stance (< 0 about the heel contact
+    point, > 0 about the ball of the foot); ``alpha`` knots (t, a) place the foot's share of the
+    zero-moment point between heel (0) and toe (1). ``swing`` says how the foot moves after
+    ``t_off`` until its next stance: ``{"mode": "world", "clear": m}`` (a swing between the
+    two footsteps, lifted by ``clear``) or ``{"mode": "rel", "keys": [...], "tuck": m}``
+    (relative to the pelvis heading frame: flights and kicks).
+    """
+
+    foot: int
+    G: np.ndarray
+    t_on: float
+    t_off: float = math.inf
+    phi: list = field(default_factory=list)
+    alpha: list = field(default_factory=list)
+    load: bool = True
+    swing: dict | None = None
+
+    def phi_at(self, t):
+        return _Track(self.phi)(t) if self.phi else np.zeros(np.shape(t))
+
+    def alpha_at(self, t):
+        return _Track(self.alpha)(t) if self.alpha else np.full(np.shape(t), 0.3)
+
+
+@dataclass
+class Segment:
+    kind: str
+    t0: float
+    t1: float
+    fn: Callable[[np.ndarray], dict]  # times -> {"z", "yaw", "pitch", "roll", "upper", ...}
+    info: dict = field(default_factory=dict)
+
+
+class Plan:
+    """A motion under construction: stances of both feet, segments, weight pins."""
+
+    def __init__(self, ch: Character, rng: np.random.Generator, style: dict):
+        self.ch = ch
+        self.rng = rng
+        self.style = style
+        self.t = 0.0
+        self.stances: tuple[list[Stance], list[Stance]] = ([], [])
+        self.segments: list[Segment] = []
+        self.lam_pins: list[tuple[float, float]] = []  # (t, share of the left foot)
+        self.heading = 0.0
+        self.z_rest = ch.z_stand - style["z_rest_drop"]
+
+    # -- state -----------------------------------------------------------------------------
+    def stance(self, foot: int) -> Stance:
+        return self.stances[foot][-1]
+
+    def feet(self):
+        return [self.stance(0).G.copy(), self.stance(1).G.copy()]
+
+    def mid(self):
+        a, b = self.feet()
+        return (a[:2] + b[:2]) / 2
+
+    # -- footsteps -----------------------------------------------------------------------
+    def start(self, feet, heading, alpha):
+        for f in (0, 1):
+            self.stances[f].append(Stance(f, np.asarray(feet[f], float), -math.inf,
+                                          phi=[], alpha=[(0.0, alpha)]))
+        self.heading = heading
+
+    def lift(self, foot, t, phi_off=0.0, r_off=0.0, alpha_off=None, swing=None, alpha_flat=None):
+        s = self.stance(foot)
+        if t <= s.t_on:
+            raise GenerationError("lift before landing")
+        s.t_off = t
+        if phi_off != 0.0 and r_off > 0:
+            s.phi += [(t - r_off, 0.0), (t, phi_off)]
+        elif phi_off != 0.0:
+            raise GenerationError("a rocker needs a duration")
+        if alpha_off is None:
+            alpha_off = 1.0 if phi_off > 0 else (0.0 if phi_off < 0 else None)
+        if alpha_flat is not None and r_off > 0:
+            s.alpha.append((t - r_off, alpha_flat))
+        if alpha_off is not None:
+            s.alpha.append((t, alpha_off))
+        s.swing = swing or {"mode": "world", "clear": 0.05 * self.ch.scale}
+
+    def land(self, foot, G, t, phi_on=0.0, r_on=0.0, alpha_on=None, alpha_flat=None, load=True):
+        prev = self.stance(foot)
+        if t <= prev.t_off:
+            raise GenerationError("landing before lift-off")
+        s = Stance(foot, np.asarray(G, float), t, load=load)
+        if phi_on != 0.0:
+            if r_on <= 0:
+                raise GenerationError("a rocker needs a duration")
+            s.phi = [(t, phi_on), (t + r_on, 0.0)]
+        if alpha_on is None:
+            alpha_on = 1.0 if phi_on > 0 else (0.0 if phi_on < 0 else self.style["alpha"])
+        s.alpha = [(t, alpha_on)]
+        if alpha_flat is not None and r_on > 0:
+            s.alpha.append((t + r_on, alpha_flat))
+        self.stances[foot].append(s)
+        return s
+
+    def step(self, foot, G, t_lift, t_land, phi_off=0.0, r_off=0.0, phi_on=0.0, r_on=0.0,
+             clear=None, swing=None, alpha_flat_off=None, alpha_flat_on=None, load=True):
+        if swing is None:
+            swing = {"mode": "world", "clear": (0.05 * self.ch.scale) if clear is None else clear}
+        self.lift(foot, t_lift, phi_off, r_off, swing=swing, alpha_flat=alpha_flat_off)
+        return self.land(foot, G, t_land, phi_on, r_on, alpha_flat=alpha_flat_on, load=load)
+
+    def add_segment(self, kind, t0, t1, fn, **info):
+        if t1 <= t0:
+            raise GenerationError("empty segment")
+        self.segments.append(Segment(kind, t0, t1, fn, info))
+        self.t = t1
+
+
+# -----------------------------------------------------------------------------------------
+# upper body poses
+# -----------------------------------------------------------------------------------------
+
+_MIRROR_SIGN = {"x": -1.0, "y": 1.0, "z": -1.0}
+
+
+def _upper_names(ch: Character) -> list[str]:
+    legs = set()
+    for L in ch.legs:
+        legs.update(int(a) for a in L.ik_qadr)
+        legs.add(L.toe_qadr)
+    return [n for n, a in sorted(ch.qadr.items(), key=lambda kv: kv[1]) if a not in legs]
+
+
+class Pose:
+    """Upper-body hinge angles (radians) as a dict of (T,) arrays, with mirrored helpers.
+
+    Arm angles are given for the *left* side's sign convention and mirrored for the right
+    (x and z negated, y kept), as ``docs/model.md`` describes.
+    """
+
+    def __init__(self, names, T, base=None):
+        self.names = names
+        self.v = {n: np.zeros(T) for n in names}
+        if base:
+            for k, val in base.items():
+                self.v[k] = self.v[k] + val
+
+    def add(self, name, val):
+        if name in self.v:
+            self.v[name] = self.v[name] + val
+
+    def add_sym(self, side, joint, axis, val):
+        s = 1.0 if side == "left" else _MIRROR_SIGN[axis]
+        self.add(f"{side}_{joint}_{axis}", s * np.asarray(val))
+
+    def arm(self, side, down=0.0, fwd=0.0, twist=0.0, elbow=0.0, wrist=0.0, shrug=0.0, protract=0.0):
+        """Arm relative to the T-pose: ``down`` lowers it (rad, pi/2 = at the side, < 0 raises it
+        above the shoulder), ``fwd`` swings it forward, ``twist`` internal rotation, ``elbow``
+        flexion, ``wrist`` flexion; collar ``shrug`` / ``protract``."""
+        self.add_sym(side, "shoulder", "x", -np.asarray(down))
+        self.add_sym(side, "shoulder", "z", -np.asarray(fwd))
+        self.add_sym(side, "shoulder", "y", np.asarray(twist))
+        self.add_sym(side, "elbow", "z", -np.asarray(elbow))
+        self.add_sym(side, "wrist", "x", -np.asarray(wrist))
+        self.add_sym(side, "collar", "x", np.asarray(shrug))
+        self.add_sym(side, "collar", "z", -np.asarray(protract))
+
+    def spine(self, flex=0.0, lat=0.0, twist=0.0):
+        """Trunk flexion (forward), lateral bend (to the right), twist (to the left), split
+        between the lumbar (spine1) and thoracic (spine3) joints."""
+        self.add("spine1_y", 0.6 * np.asarray(flex))
+        self.add("spine3_y", 0.4 * np.asarray(flex))
+        self.add("spine1_x", 0.55 * np.asarray(lat))
+        self.add("spine3_x", 0.45 * np.asarray(lat))
+        self.add("spine1_z", 0.35 * np.asarray(twist))
+        self.add("spine3_z", 0.65 * np.asarray(twist))
+
+    def neck(self, flex=0.0, lat=0.0, turn=0.0):
+        self.add("neck_y", np.asarray(flex))
+        self.add("neck_x", np.asarray(lat))
+        self.add("neck_z", np.asarray(turn))
+
+    def array(self):
+        return np.stack([self.v[n] for n in self.names], axis=1)
+
+
+def _neutral(plan: Plan, T) -> Pose:
+    st = plan.style
+    P = Pose(plan.upper_names, T)
+    for side in SIDES:
+        P.arm(side, down=st["arm_down"], fwd=st["arm_fwd"], twist=st["arm_twist"], elbow=st["elbow"])
+    P.spine(flex=st["spine_flex"])
+    P.neck(flex=st["neck_flex"])
+    return P
+
+
+def _keys(t, knots):
+    """PCHIP track through (time, value) knots evaluated at t."""
+    return _Track(knots)(t)
+
+
+def _ease(t, t0, t1):
+    """0 before t0, smooth rise to 1 at t1."""
+    if t1 <= t0:
+        return (np.asarray(t) >= t0).astype(float)
+    return _smoothstep((np.asarray(t) - t0) / (t1 - t0))
+
+
+def _window(t, t0, t1, ramp):
+    """1 inside [t0 + ramp, t1 - ramp], smooth ramps to 0 at t0 and t1."""
+    ramp = max(min(ramp, (t1 - t0) / 2), 1e-6)
+    return _ease(t, t0, t0 + ramp) * (1.0 - _ease(t, t1 - ramp, t1))
+
+
+# =========================================================================================
+# from plan to joint angles
+# =========================================================================================
+
+
+@dataclass
+class Motion:
+    """A kinematic motion: joint angles and its plan-level annotations (frame-aligned)."""
+
+    q: np.ndarray  # (T, nq)
+    fps: float
+    planted: np.ndarray  # (T, 4) bool: planned contact of each contact site (CONTACT_SITES order)
+    flight: np.ndarray  # (T,) bool: no foot on the floor
+    kind: np.ndarray  # (T,) int index into MOTION_KINDS (the segment kind of each frame)
+    character: Character
+    com: np.ndarray  # (T, 3) whole-body centre of mass
+    zmp_ref: np.ndarray  # (T, 2) planned zero-moment point (NaN in flight)
+    info: dict = field(default_factory=dict)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.q.shape[0])
+
+    def slice(self, a: int, b: int) -> Motion:
+        return dataclasses.replace(
+            self, q=self.q[a:b], planted=self.planted[a:b], flight=self.flight[a:b],
+            kind=self.kind[a:b], com=self.com[a:b], zmp_ref=self.zmp_ref[a:b],
+        )
+
+
+def _runs(mask):
+    """(start, stop) index pairs of the True runs of a boolean array."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    d = np.diff(m.astype(int))
+    return list(zip(np.nonzero(d == 1)[0], np.nonzero(d == -1)[0], strict=True))
+
+
+def _flights(plan: Plan, t_end: float):
+    """Continuous-time intervals with no foot on the floor."""
+    iv = sorted((s.t_on, s.t_off) for f in (0, 1) for s in plan.stances[f])
+    out = []
+    cur_end = -math.inf
+    for a, b in iv:
+        if a > cur_end and cur_end > -math.inf:
+            out.append((cur_end, a))
+        cur_end = max(cur_end, b)
+    if cur_end < t_end:
+        raise GenerationError("plan ends with a foot in the air")
+    return out
+
+
+def _seg_eval(plan: Plan, t: float, key: str) -> float:
+    for seg in plan.segments:
+        if seg.t0 <= t <= seg.t1:
+            return float(np.asarray(seg.fn(np.array([t]))[key])[0])
+    raise GenerationError(f"no segment covers t = {t}")
+
+
+def _z_profile(plan: Plan, t: np.ndarray, z_des: np.ndarray, flights) -> np.ndarray:
+    """Pelvis height: the segments' desired height, a g-parabola in every flight, and C1
+    corrections of the support phases next to a flight."""
+    z = z_des.copy()
+    eps = 1e-4
+    bc = []  # (time, dv, side) velocity mismatches to fix at support-interval ends
+    for a, b in flights:
+        z0, z1 = _seg_eval(plan, a, "z"), _seg_eval(plan, b, "z")
+        Tf = b - a
+        v0 = (z1 - z0) / Tf + GRAVITY * Tf / 2
+        v1 = v0 - GRAVITY * Tf
+        m = (t > a) & (t < b)
+        u = t[m] - a
+        z[m] = z0 + v0 * u - 0.5 * GRAVITY * u * u
+        d_before = (_seg_eval(plan, a, "z") - _seg_eval(plan, a - eps, "z")) / eps
+        d_after = (_seg_eval(plan, b + eps, "z") - _seg_eval(plan, b, "z")) / eps
+        bc.append((a, v0 - d_before, "end"))
+        bc.append((b, v1 - d_after, "start"))
+    # support intervals
+    edges = [0.0] + [x for ab in flights for x in ab] + [max(t[-1], plan.t)]
+    for s0, s1 in zip(edges[0::2], edges[1::2], strict=True):
+        dv0 = next((dv for tt, dv, side in bc if side == "start" and abs(tt - s0) < 1e-9), 0.0)
+        dv1 = next((dv for tt, dv, side in bc if side == "end" and abs(tt - s1) < 1e-9), 0.0)
+        if dv0 == 0.0 and dv1 == 0.0:
+            continue
+        m = (t >= s0) & (t <= s1)
+        tt = t[m]
+        L = s1 - s0
+        if L < 0.5:
+            u = (tt - s0) / L
+            z[m] += (u**3 - 2 * u**2 + u) * dv0 * L + (u**3 - u**2) * dv1 * L
+        else:
+            w = 0.25
+            z[m] += dv0 * (tt - s0) * (1.0 - _ease(tt, s0, s0 + w))
+            z[m] += dv1 * (tt - s1) * _ease(tt, s1 - w, s1)
+    return z
+
+
+def _load_share(plan: Plan, t, st_idx):
+    """Share of the body weight on the left foot (NaN while no foot is loaded)."""
+    N = len(t)
+    loaded = np.zeros((2, N), bool)
+    for f in (0, 1):
+        for j, s in enumerate(plan.stances[f]):
+            if s.load:
+                loaded[f] |= st_idx[f] == j
+    lam = np.full(N, np.nan)
+    lam[loaded[0] & ~loaded[1]] = 1.0
+    lam[~loaded[0] & loaded[1]] = 0.0
+    pins = sorted(plan.lam_pins)
+    r = 0.3
+    for k0, k1 in _runs(loaded[0] & loaded[1]):
+        a = t[k0 - 1] if k0 > 0 else t[k0]
+        b = t[k1] if k1 < N else t[k1 - 1]
+        va = lam[k0 - 1] if k0 > 0 and not np.isnan(lam[k0 - 1]) else 0.5
+        vb = lam[k1] if k1 < N and not np.isnan(lam[k1]) else 0.5
+        inner = [(pt, pv) for pt, pv in pins if a < pt < b]
+        knots = [(a, va)] + inner + [(b, vb)]
+        if not inner and b - a > 2 * r:
+            knots = [(a, va), (a + r, 0.5), (b - r, 0.5), (b, vb)]
+        lam[k0:k1] = _Track(knots)(t[k0:k1])
+    return lam, loaded
+
+
+def _com_filter(p_ref, support, z_com, intent, fps, c_start, c_end):
+    """Horizontal COM trajectory (T, 2): its zero-moment point follows ``p_ref`` on support
+    frames (linear inverted pendulum with the given COM height), ``c'' = 0`` in flight, least
+    squares with small jerk and intent terms, at rest at both ends."""
+    N = len(p_ref)
+    dt = 1.0 / fps
+    zdd = np.zeros(N)
+    zdd[1:-1] = (z_com[:-2] - 2 * z_com[1:-1] + z_com[2:]) / dt**2
+    beta = z_com / np.maximum(zdd + GRAVITY, 0.5)
+    rows, cols, vals = [], [], []
+    rhs = []
+    r = 0
+
+    def add(cs, vs, b):
+        nonlocal r
+        rows.extend([r] * len(cs))
+        cols.extend(cs)
+        vals.extend(vs)
+        rhs.append(b)
+        r += 1
+
+    w_z, w_f, w_j, w_i, w_b = 1.0, 30.0 * dt**2, 2e-3 * dt**3, 0.03, 100.0
+    for k in range(1, N - 1):
+        if support[k] and not np.isnan(p_ref[k, 0]):
+            bk = beta[k] / dt**2
+            add([k - 1, k, k + 1], [-w_z * bk, w_z * (1 + 2 * bk), -w_z * bk], w_z * p_ref[k])
+        else:
+            add([k - 1, k, k + 1], [w_f / dt**2, -2 * w_f / dt**2, w_f / dt**2], np.zeros(2))
+    for k in range(1, N - 2):
+        add([k - 1, k, k + 1, k + 2], [-w_j / dt**3, 3 * w_j / dt**3, -3 * w_j / dt**3, w_j / dt**3],
+            np.zeros(2))
+    for k in range(N):
+        add([k], [w_i], w_i * intent[k])
+    add([0], [w_b], w_b * c_start)
+    add([N - 1], [w_b], w_b * c_end)
+    if N > 2:
+        add([0, 1], [-w_b / dt, w_b / dt], np.zeros(2))
+        add([N - 2, N - 1], [-w_b / dt, w_b / dt], np.zeros(2))
+    A = sp.csr_matrix((vals, (rows, cols)), shape=(r, N))
+    B = np.array(rhs)
+    AtA = (A.T @ A).tocsc()
+    return np.column_stack([spla.spsolve(AtA, A.T @ B[:, i]) for i in range(2)])
+
+
+def _interp_rows(t, tq, X):
+    """Linear interpolation of the rows of X (sampled at t) at times tq."""
+    X = np.asarray(X)
+    flat = X.reshape(len(t), -1)
+    out = np.stack([np.interp(tq, t, flat[:, i]) for i in range(flat.shape[1])], axis=-1)
+    return out.reshape(np.shape(tq) + X.shape[1:])
+
+
+def _foot_targets(plan: Plan, t, st_idx, fb, lift):
+    """Ankle targets of every stance and world-frame swing frame, with the extra heel raise
+    ``fb`` (2, T) added to the planned rocker angles. Returns (R_t, p_t, toe_t, planted,
+    P_zmp, rel_swings)."""
+    ch = plan.ch
+    N = len(t)
+    R_t = np.tile(np.eye(3), (2, N, 1, 1))
+    p_t = np.zeros((2, N, 3))
+    toe_t = np.zeros((2, N))
+    planted = np.zeros((N, 4), bool)
+    P_zmp = np.zeros((2, N, 2))
+
+    def phi_of(f, s, tq):
+        return s.phi_at(tq) + np.interp(tq, t, fb[f])
+
+    for f in (0, 1):
+        for j, s in enumerate(plan.stances[f]):
+            m = st_idx[f] == j
+            if not m.any():
+                continue
+            ph = phi_of(f, s, t[m])
+            R, p, toe = ch.stance_pose(f, s.G, ph)
+            R_t[f, m], p_t[f, m], toe_t[f, m] = R, p, toe
+            planted[m, 2 * f] = ph <= 0
+            planted[m, 2 * f + 1] = ph >= 0
+            pts = ch.contact_points_G(f, s.G)
+            a = s.alpha_at(t[m])
+            a = np.where(ph > 0.02, np.maximum(a, np.clip(ph / 0.1, 0, 1)), a)
+            P_zmp[f, m] = (pts[0, :2] + a[:, None] * (pts[1, :2] - pts[0, :2]))
+    rel = []
+    for f in (0, 1):
+        S = plan.stances[f]
+        for j in range(len(S) - 1):
+            a, b = S[j], S[j + 1]
+            if a.swing.get("mode", "world") != "world":
+                rel.append((f, j))
+                continue
+            m = (t > a.t_off) & (t < b.t_on) & (st_idx[f] < 0)
+            if not m.any():
+                continue
+            R0, p0, k0 = ch.stance_pose(f, a.G, phi_of(f, a, np.array(a.t_off)))
+            R1, p1, k1 = ch.stance_pose(f, b.G, phi_of(f, b, np.array(b.t_on)))
+            s = (t[m] - a.t_off) / (b.t_on - a.t_off)
+            h = _smoothstep(s)
+            p = p0 + h[:, None] * (p1 - p0)
+            p[:, 2] += a.swing.get("clear", 0.05) * _bump(s)
+            R = _slerp_R(np.broadcast_to(R0, (len(s), 3, 3)), np.broadcast_to(R1, (len(s), 3, 3)), h)
+            toe = k0 + _smoothstep(s / 0.5) * (k1 - k0)
+            minz = ch.foot_points(f, R, p, toe)[..., 2].min(axis=-1)
+            p[:, 2] += np.maximum(0.0, 0.002 * _bump(s) - minz) + lift[f, m]
+            R_t[f, m], p_t[f, m], toe_t[f, m] = R, p, toe
+    return R_t, p_t, toe_t, planted, P_zmp, rel
+
+
+def _smooth_upper(x, fps, width_s=0.12):
+    """A smooth envelope >= x (dilate, then a truncated Gaussian of the dilation radius)."""
+    k = max(1, int(round(width_s * fps)))
+    S = gaussian_filter1d(maximum_filter1d(x, size=2 * k + 1, mode="nearest"), sigma=k / 3.0,
+                          truncate=3.0, mode="nearest")
+    return np.maximum(S, x)
+
+
+def _realize(plan: Plan, fps: float, n_pass: int = 6) -> Motion:
+    ch = plan.ch
+    T_end = plan.t
+    N = int(math.floor(T_end * fps + 1e-9)) + 1
+    t = np.arange(N) / fps
+    names = plan.upper_names
+    nu = len(names)
+    upper_qadr = np.array([ch.qadr[n] for n in names])
+
+    # ---- segment tracks ----
+    z_des = np.zeros(N)
+    yaw = np.zeros(N)
+    pitch = np.zeros(N)
+    roll = np.zeros(N)
+    upper = np.zeros((N, nu))
+    kind = np.zeros(N, int)
+    for i, seg in enumerate(plan.segments):
+        last = i == len(plan.segments) - 1
+        m = (t >= seg.t0) & ((t < seg.t1) if not last else (t <= seg.t1 + 1e-9))
+        if not m.any():
+            continue
+        out = seg.fn(t[m])
+        z_des[m] = out["z"]
+        yaw[m] = out["yaw"]
+        pitch[m] = out.get("pitch", 0.0)
+        roll[m] = out.get("roll", 0.0)
+        upper[m] = out["upper"]
+        kind[m] = MOTION_KINDS.index(seg.kind)
+    yaw = np.unwrap(yaw)
+    upper = np.clip(upper, ch.lower[upper_qadr], ch.upper[upper_qadr])
+    R_pel = _rz(yaw) @ _ry(pitch) @ _rx(roll)
+
+    # ---- stances, flights, pelvis height ----
+    st_idx = -np.ones((2, N), int)
+    for f in (0, 1):
+        for j, s in enumerate(plan.stances[f]):
+            st_idx[f, (t >= s.t_on - 1e-9) & (t <= s.t_off + 1e-9)] = j
+    flights = _flights(plan, T_end)
+    flight = (st_idx[0] < 0) & (st_idx[1] < 0)
+    z0 = _z_profile(plan, t, z_des, flights)
+    lam, loaded = _load_share(plan, t, st_idx)
+    support = ~np.isnan(lam)
+
+    q = np.tile(ch.q_stand, (N, 1))
+    q[:, upper_qadr] = upper
+    q[:, 3:7] = _continuous_quats(_mat2quat(R_pel))
+    off = np.einsum("tij,j->ti", R_pel, ch.com0)
+    fb = np.zeros((2, N))  # extra heel raise where the ankle cannot dorsiflex enough
+    lift = np.zeros((2, N))  # extra swing-foot lift where the solved foot dips below the floor
+    swing_w = np.zeros((2, N))  # 0 at the ends of each swing, 1 inside
+    for f in (0, 1):
+        for a, b in _runs(st_idx[f] < 0):
+            ta, tb = (t[a - 1] if a > 0 else t[a]), (t[b] if b < N else t[b - 1])
+            u = (t[a:b] - ta) / max(tb - ta, 1e-9)
+            swing_w[f, a:b] = _smoothstep(u / 0.2) * _smoothstep((1 - u) / 0.2)
+    relaxed = ch.lower.copy()
+    for L in ch.legs:
+        relaxed[L.ik_qadr[4]] = -1.2  # ankle_y (dorsiflexion) relaxed while measuring the need
+    info = {"flights": flights}
+    intent = None
+    for it in range(n_pass):
+        R_t, p_t, toe_t, planted, P_zmp, rel = _foot_targets(plan, t, st_idx, fb, lift)
+        p_ref = np.full((N, 2), np.nan)
+        p_ref[support] = (lam[support, None] * P_zmp[0, support]
+                          + (1 - lam[support, None]) * P_zmp[1, support])
+        if intent is None:
+            intent = p_ref.copy()
+            for i in range(2):
+                ok = ~np.isnan(intent[:, i])
+                intent[:, i] = np.interp(t, t[ok], intent[ok, i])
+            intent = gaussian_filter1d(intent, sigma=0.25 * fps, axis=0, mode="nearest")
+        z_com = z0 + off[:, 2]
+        c = _com_filter(p_ref, support, z_com, intent, fps, intent[0], intent[-1])
+        pel = np.column_stack([c - off[:, :2], z0])
+        _rel_swings(plan, ch, t, pel, yaw, rel, st_idx, R_t, p_t, toe_t, lift)
+        dz = _reach_fix(ch, pel, R_pel, p_t, st_idx, flights, t, fps)
+        pel[:, 2] -= dz
+        _rel_swings(plan, ch, t, pel, yaw, rel, st_idx, R_t, p_t, toe_t, lift)
+        for f, L in enumerate(ch.legs):
+            q[:, L.toe_qadr] = toe_t[f]
+        q[:, 0:3] = pel
+        com, err = _solve_all(ch, q, R_t, p_t, planted, first=(it == 0), lower=relaxed)
+        # feedback: heel raise where the ankle would dorsiflex beyond its range, swing-foot lift
+        # where the solved foot dips below the floor
+        clean = True
+        for f, L in enumerate(ch.legs):
+            a = L.ik_qadr[4]
+            excess = np.maximum(ch.lower[a] + 0.02 - q[:, a], 0.0)
+            excess[st_idx[f] < 0] = 0.0
+            if np.any(q[:, a] < ch.lower[a] - 1e-9):
+                clean = False
+            if np.any(excess > 0):
+                fb[f] += _smooth_upper(excess, fps)
+            R_a, p_a, _ = ch.leg_fk(f, R_pel, q[:, 0:3], q[:, L.ik_qadr])
+            minz = ch.foot_points(f, R_a, p_a, q[:, L.toe_qadr])[..., 2].min(axis=-1)
+            need = np.where(st_idx[f] < 0, np.maximum(0.004 - minz, 0.0), 0.0)
+            if np.any(np.where(st_idx[f] < 0, minz, 1.0) < 0.0):
+                clean = False
+            if np.any(need > 0):
+                lift[f] += _smooth_upper(need, fps, 0.08) * swing_w[f]
+        new_off = com - pel
+        info["com_change"] = float(np.max(np.abs(new_off[:, :2] - off[:, :2])))
+        off = new_off
+        info["ik_err"] = err
+        info["passes"] = it + 1
+        if clean and it >= 2:
+            break
+    for L in ch.legs:
+        q[:, L.ik_qadr] = np.clip(q[:, L.ik_qadr], ch.lower[L.ik_qadr], ch.upper[L.ik_qadr])
+    info["zmp_com"] = c
+    info["heel_raise_fb"] = float(fb.max())
+    info["swing_lift_fb"] = float(lift.max())
+    return Motion(q=q, fps=fps, planted=planted, flight=flight, kind=kind, character=ch,
+                  com=com, zmp_ref=p_ref, info=info)
+
+
+def _rel_swings(plan, ch, t, pel, yaw, swings, st_idx, R_t, p_t, toe_t, lift):
+    for f, j in swings:
+        S = plan.stances[f]
+        a, b = S[j], S[j + 1]
+        m = (t > a.t_off) & (t < b.t_on) & (st_idx[f] < 0)
+        if not m.any():
+            continue
+        sw = a.swing
+
+        def H(tq):
+            pp = _interp_rows(t, np.atleast_1d(tq), pel)
+            yy = np.interp(np.atleast_1d(tq), t, yaw)
+            return _rz(yy), pp
+
+        R0, p0, k0 = ch.stance_pose(f, a.G, a.phi_at(a.t_off))
+        R1, p1, k1 = ch.stance_pose(f, b.G, b.phi_at(b.t_on))
+        HR0, Hp0 = H(a.t_off)
+        HR1, Hp1 = H(b.t_on)
+        rel0 = (HR0[0].T @ R0, HR0[0].T @ (p0 - Hp0[0]), k0)
+        rel1 = (HR1[0].T @ R1, HR1[0].T @ (p1 - Hp1[0]), k1)
+        keys = [(0.0, rel0)] + [(k["s"], (k["R"], k["p"], k["toe"])) for k in sw.get("keys", [])] + [(1.0, rel1)]
+        s = (t[m] - a.t_off) / (b.t_on - a.t_off)
+        Rr = np.zeros((len(s), 3, 3))
+        pr = np.zeros((len(s), 3))
+        kr = np.zeros(len(s))
+        for (sa, (Ra, pa, ka)), (sb, (Rb, pb, kb)) in zip(keys[:-1], keys[1:], strict=True):
+            mm = (s >= sa) & (s <= sb)
+            if not mm.any():
+                continue
+            h = _smoothstep((s[mm] - sa) / (sb - sa))
+            Rr[mm] = _slerp_R(np.broadcast_to(Ra, (mm.sum(), 3, 3)), np.broadcast_to(Rb, (mm.sum(), 3, 3)), h)
+            pr[mm] = pa + h[:, None] * (pb - pa)
+            kr[mm] = ka + h * (kb - ka)
+        pr[:, 2] += sw.get("tuck", 0.0) * _bump(s)
+        HR, Hp = H(t[m])
+        R = HR @ Rr
+        p = Hp + np.einsum("tij,tj->ti", HR, pr)
+        minz = ch.foot_points(f, R, p, kr)[..., 2].min(axis=-1)
+        p[:, 2] += np.maximum(0.0, 0.002 * _bump(s) - minz) + lift[f, m]
+        R_t[f, m], p_t[f, m], toe_t[f, m] = R, p, kr
+
+
+def _reach_fix(ch, pel, R_pel, p_t, st_idx, flights, t, fps):
+    """How much to lower the pelvis (T,) so both ankles are within 99.5% of the leg length;
+    smooth, >= the need at every frame, and affine (parabola-preserving) inside flights."""
+    r = 0.995 * ch.reach
+    need = np.zeros(len(t))
+    for f, L in enumerate(ch.legs):
+        hip = pel + np.einsum("tij,j->ti", R_pel, L.hip_offset)
+        v = hip - p_t[f]
+        h2 = v[:, 0] ** 2 + v[:, 1] ** 2
+        dist = np.sqrt(h2 + v[:, 2] ** 2)
+        bad = (dist > r) & (st_idx[f] >= 0)
+        if np.any(bad & (h2 >= r * r)):
+            raise GenerationError("a planted foot is out of reach horizontally")
+        nd = np.where(bad, v[:, 2] - np.sqrt(np.maximum(r * r - h2, 0.0)), 0.0)
+        need = np.maximum(need, nd)
+    if not np.any(need > 0):
+        return need
+    S = _smooth_upper(need, fps, 0.06)
+    for a, b in flights:
+        m = (t > a) & (t < b)
+        if m.any():
+            ia = max(np.nonzero(t <= a)[0][-1], 0) if np.any(t <= a) else 0
+            ib = np.nonzero(t >= b)[0][0] if np.any(t >= b) else len(t) - 1
+            S[m] = np.interp(t[m], [t[ia], t[ib]], [S[ia], S[ib]])
+    return S
+
+
+def _solve_all(ch: Character, q, R_t, p_t, planted, first: bool, lower=None):
+    """Leg IK for every frame, in place; returns (com (T, 3), max planted-foot residual (m))."""
+    N = len(q)
+    if first:
+        init = np.array([-0.2, 0.0, 0.0, 0.4, -0.2, 0.0, 0.0])
+        for L in ch.legs:
+            q[:, L.ik_qadr] = np.clip(init, ch.lower[L.ik_qadr], ch.upper[L.ik_qadr])
+    res = ch.solve_legs(q, R_t, p_t, lower=lower)
+    if _DEBUG:
+        print("ik: frames not converged", int(np.sum(np.max(res, axis=1) > 1e-6)), "of", N)
+    # frames whose planted feet did not converge: restart from a converged neighbour
+    pl = np.stack([planted[:, 0] | planted[:, 1], planted[:, 2] | planted[:, 3]], axis=1)
+    for _ in range(3):
+        r_pl = np.max(np.where(pl, res, 0.0), axis=1)
+        bad = np.nonzero(r_pl > 1e-6)[0]
+        if len(bad) == 0:
+            break
+        good = np.nonzero(r_pl <= 1e-6)[0]
+        if len(good) == 0:
+            break
+        nb = good[np.clip(np.searchsorted(good, bad), 0, len(good) - 1)]
+        sub = q[bad].copy()
+        for L in ch.legs:
+            sub[:, L.ik_qadr] = q[nb[:, None], L.ik_qadr[None, :]]
+        r2 = ch.solve_legs(sub, R_t[:, bad], p_t[:, bad], iters=60, lower=lower)
+        better = np.max(np.where(pl[bad], r2, 0), axis=1) < r_pl[bad]
+        q[bad[better]] = sub[better]
+        res[bad[better]] = r2[better]
+    com = np.zeros((N, 3))
+    d = ch.d
+    for k in range(N):
+        d.qpos[:] = q[k]
+        mujoco.mj_kinematics(ch.mj, d)
+        mujoco.mj_comPos(ch.mj, d)
+        com[k] = d.subtree_com[ch.pelvis]
+    worst = float(np.max(np.where(pl, res, 0.0))) if N else 0.0
+    return com, worst
+
+
+# =========================================================================================
+# motion segments
+# =========================================================================================
+
+
+def _style(rng: np.random.Generator, ch: Character) -> dict:
+    """Per-clip personal style: neutral posture, stance width, ..."""
+    s = ch.scale
+    return dict(
+        arm_down=rng.uniform(1.30, 1.50),
+        arm_fwd=rng.uniform(-0.05, 0.15),
+        arm_twist=rng.uniform(-0.2, 0.2),
+        elbow=rng.uniform(0.08, 0.35),
+        spine_flex=rng.uniform(-0.04, 0.10),
+        neck_flex=rng.uniform(-0.08, 0.12),
+        width=rng.uniform(0.14, 0.22) * s,
+        toe_out=rng.uniform(0.0, 0.18),
+        alpha=rng.uniform(0.15, 0.4),
+        z_rest_drop=rng.uniform(0.002, 0.008) * s,
+        arm_swing=rng.uniform(0.6, 1.3),
+    )
+
+
+def _heading_of(feet) -> float:
+    a, b = feet
+    # mean facing of the two feet (toe-out cancels)
+    return math.atan2(math.sin(a[2]) + math.sin(b[2]), math.cos(a[2]) + math.cos(b[2]))
+
+
+def _place(mid, facing, side_sign, width, toe_out, forward=0.0):
+    """Ground frame of a foot beside a point ``mid`` (on a line facing ``facing``)."""
+    c, s = math.cos(facing), math.sin(facing)
+    lat = side_sign * width / 2
+    return np.array([mid[0] + c * forward - s * lat, mid[1] + s * forward + c * lat,
+                     facing + side_sign * toe_out])
+
+
+def _sgn(foot):
+    return 1.0 if foot == 0 else -1.0
+
+
+def _gesture(plan: Plan, P: Pose, u, dur, name, side, rng_vals):
+    """Add an arm/head gesture to pose P over local times u in [0, dur]."""
+    st = plan.style
+    ramp = min(0.6, dur / 3)
+    w = _window(u, 0.0, dur, ramp)
+    a = rng_vals
+    nd = st["arm_down"]
+    if name == "wave":
+        P.arm(side, down=w * (-a[0] - nd), twist=w * (-1.35 - st["arm_twist"]),
+              elbow=w * (a[1] - st["elbow"]))
+        P.add_sym(side, "elbow", "z", -w * 0.35 * np.sin(2 * np.pi * a[2] * u))
+        P.neck(turn=w * _sgn(0 if side == "left" else 1) * 0.3)
+    elif name == "reach":
+        sides = SIDES if a[3] > 0.5 else (side,)
+        for sd in sides:
+            P.arm(sd, fwd=w * (a[0] * 1.2 + 0.8 - st["arm_fwd"]), elbow=w * (0.05 - st["elbow"]))
+        P.spine(flex=w * 0.15 * a[1])
+    elif name == "arms_up":
+        for sd in SIDES:
+            P.arm(sd, down=w * (-1.15 - 0.3 * a[0] - nd), elbow=w * (0.1 - st["elbow"]))
+        P.spine(flex=-w * 0.1)
+        P.neck(flex=-w * 0.2 * a[1])
+    elif name == "cross":
+        for sd in SIDES:
+            P.arm(sd, fwd=w * (1.2 + 0.3 * a[0] - st["arm_fwd"]), elbow=w * (1.7 + 0.3 * a[1] - st["elbow"]),
+                  twist=w * 0.3)
+    elif name == "hips":
+        for sd in SIDES:
+            P.arm(sd, down=w * (0.95 - nd), fwd=w * (-0.35 - st["arm_fwd"]), twist=w * 0.9,
+                  elbow=w * (1.6 - st["elbow"]))
+    elif name == "look":
+        P.neck(turn=w * (a[0] - 0.5) * 1.6 * np.sin(np.pi * u / dur), flex=w * (a[1] - 0.5) * 0.4)
+        P.spine(twist=w * (a[0] - 0.5) * 0.6 * np.sin(np.pi * u / dur))
+    elif name == "stretch":
+        for sd in SIDES:
+            P.arm(sd, down=w * (-1.3 - nd), elbow=w * (0.05 - st["elbow"]))
+        P.spine(lat=w * (a[0] - 0.5) * 0.6 * np.sin(2 * np.pi * u / dur))
+    elif name == "circles":
+        f = 0.6 + 0.6 * a[1]
+        for sd in SIDES:
+            P.arm(sd, down=w * (0.1 * np.sin(2 * np.pi * f * u) - nd + 0.2 * a[0]),
+                  fwd=w * 0.35 * np.cos(2 * np.pi * f * u), elbow=w * (0.05 - st["elbow"]))
+    elif name == "clap":
+        f = 1.2 + 1.2 * a[1]
+        osc = 0.5 - 0.5 * np.cos(2 * np.pi * f * u)
+        for sd in SIDES:
+            P.arm(sd, fwd=w * (1.25 - st["arm_fwd"] + 0.25 * osc), elbow=w * (0.5 - st["elbow"] + 0.4 * osc),
+                  twist=w * 0.8)
+    elif name == "point":
+        P.arm(side, down=w * (1.45 - 0.5 * a[0] - nd), fwd=w * (1.45 - st["arm_fwd"]), elbow=-w * st["elbow"])
+        P.neck(turn=w * 0.2 * (1 if side == "left" else -1))
+
+
+GESTURES = ("wave", "reach", "arms_up", "cross", "hips", "look", "stretch", "circles", "clap", "point")
+
+
+def seg_stand(plan: Plan, dur: float | None = None, gestures: bool = True, kind: str = "stand"):
+    """Standing: weight shifts, small knee bends, arm gestures."""
+    rng = plan.rng
+    dur = float(rng.uniform(2.0, 4.5) if dur is None else dur)
+    t0, t1 = plan.t, plan.t + dur
+    heading = _heading_of(plan.feet())
+    plan.heading = heading
+    if gestures:
+        for _ in range(int(rng.integers(0, 3))):
+            plan.lam_pins.append((t0 + float(rng.uniform(0.35, max(0.4, dur - 0.35))),
+                                  float(rng.uniform(0.3, 0.7))))
+    plan.lam_pins.append((t1, 0.5))
+    gs = []
+    if gestures and dur > 1.2:
+        n = 1 if dur < 3.0 else int(rng.integers(1, 3))
+        edges = np.sort(rng.uniform(0, dur, n - 1)) if n > 1 else np.array([])
+        bounds = np.concatenate([[0.0], edges, [dur]])
+        for i in range(n):
+            if bounds[i + 1] - bounds[i] > 1.0:
+                gs.append((bounds[i], bounds[i + 1], GESTURES[int(rng.integers(len(GESTURES)))],
+                           SIDES[int(rng.integers(2))], rng.uniform(0, 1, 4)))
+    bend = float(rng.uniform(0.0, 0.04)) * plan.ch.scale if gestures else 0.0
+    z_rest = plan.z_rest
+
+    def fn(t):
+        u = t - t0
+        P = _neutral(plan, len(t))
+        for a, b, name, side, vals in gs:
+            m = (u >= a) & (u <= b)
+            if m.any():
+                sub = Pose(P.names, len(t))
+                _gesture(plan, sub, np.where(m, u - a, 0.0), b - a, name, side, vals)
+                for k in P.v:
+                    P.v[k] = P.v[k] + np.where(m, sub.v[k], 0.0)
+        z = z_rest - bend * np.sin(np.pi * np.clip(u / dur, 0, 1)) ** 2
+        return dict(z=z, yaw=np.full(len(t), heading), upper=P.array())
+
+    plan.add_segment(kind, t0, t1, fn, gestures=[g[2] for g in gs])
+
+
+def _interp_extrap(t, tp, fp):
+    """Piecewise-linear interpolation, extrapolated linearly beyond the ends."""
+    t = np.asarray(t, float)
+    if len(tp) == 1:
+        return np.full(t.shape, fp[0])
+    out = np.interp(t, tp, fp)
+    lo, hi = t < tp[0], t > tp[-1]
+    out[lo] = fp[0] + (t[lo] - tp[0]) * (fp[1] - fp[0]) / (tp[1] - tp[0])
+    out[hi] = fp[-1] + (t[hi] - tp[-1]) * (fp[-1] - fp[-2]) / (tp[-1] - tp[-2])
+    return out
+
+
+def _gait_timing(v, run=False):
+    """(step period, stance duration, swing time) of a walking or running step at speed v."""
+    if not run:
+        cad = float(np.clip(1.05 + 0.6 * v, 1.3, 2.3))
+        Ts = 1.0 / cad
+        ds = float(np.clip(0.12 + 0.14 * (1.3 - v), 0.07, 0.22))
+        return Ts, Ts + ds, Ts - ds
+    cad = float(np.clip(2.45 + 0.12 * v, 2.6, 3.1))
+    Ts = 1.0 / cad
+    tc = float(np.clip(0.36 - 0.04 * v, 0.17, 0.29))
+    return Ts, tc, 2 * Ts - tc
+
+
+def seg_locomotion(plan: Plan, run: bool = False, backward: bool = False):
+    """Walking (forwards or backwards) or running, with speed ramps and turns, from standing
+    to standing."""
+    ch, rng, st = plan.ch, plan.rng, plan.style
+    s = ch.scale
+    t0 = plan.t
+    if run:
+        v = float(rng.uniform(2.0, 4.2))
+        n = int(rng.integers(8, 15))
+    elif backward:
+        v = float(rng.uniform(0.4, 0.95))
+        n = int(rng.integers(4, 9))
+    else:
+        v = float(rng.uniform(0.6, 1.7))
+        n = int(rng.integers(4, 12))
+    v *= math.sqrt(s)
+    turn = 0.0
+    if rng.uniform() < 0.5:
+        turn = float(rng.uniform(-1.0, 1.0) * (0.6 if backward else (1.2 if run else 1.8)))
+    width = st["width"] * (0.8 if run else 1.0) + float(rng.uniform(-0.02, 0.02)) * s
+    toe_out = st["toe_out"]
+    facing0 = _heading_of(plan.feet())
+    path_dir0 = facing0 + (math.pi if backward else 0.0)
+    f1 = int(rng.integers(2))
+    # per-step speeds: ramp up over the first steps, down over the last ones
+    n_ramp = 3 if run else 2
+    speeds = []
+    for k in range(1, n + 1):
+        up = min(1.0, k / (n_ramp + 1))
+        down = min(1.0, (n - k + 0.5) / (n_ramp + 0.5))
+        vk = max(0.45 * math.sqrt(s), v * min(up, down))
+        speeds.append(vk)
+    mid = plan.mid()
+    P_prev = np.array(mid)
+    times = []  # (lift, land) per step
+    t_lift = t0 + float(rng.uniform(0.3, 0.5))
+    prev_land = None
+    heel = -float(rng.uniform(0.12, 0.22)) * (0.6 if run else 1.0)
+    toe_off = float(rng.uniform(0.25, 0.4)) if not run else float(rng.uniform(0.35, 0.55))
+    back_land = float(rng.uniform(0.15, 0.3))
+    back_lift = -float(rng.uniform(0.08, 0.18))
+    psi = path_dir0
+    steps = []
+    for k in range(1, n + 1):
+        vk = speeds[k - 1]
+        is_run = run and vk > 1.9 * math.sqrt(s)
+        Ts, Tc, Tsw = _gait_timing(vk / math.sqrt(s), is_run)
+        Tsw = min(Tsw, 0.6)
+        if prev_land is not None:
+            # the other foot landed at prev_land; this foot lifts Tc - Ts later (< 0: flight),
+            # with the gait timing of the previous step
+            pTc, pTs = steps[-1]["Tc"], steps[-1]["Ts"]
+            t_lift = prev_land + (pTc - pTs)
+            t_lift = max(t_lift, steps[-2]["land"] + 0.12 if len(steps) >= 2 else t_lift)
+        last = k == n
+        frac = (k - 1) / max(n - 2, 1)
+        psi = path_dir0 + turn * float(_smoothstep(np.array(min(frac, 1.0))))
+        Lk = 0.0 if last else vk * Ts
+        if k == 1:
+            Lk *= 0.6
+        psi_bar = psi
+        P = P_prev + Lk * np.array([math.cos(psi_bar), math.sin(psi_bar)])
+        foot = f1 if k % 2 == 1 else 1 - f1
+        facing = psi + (math.pi if backward else 0.0)
+        G = _place(P, facing, _sgn(foot), width, toe_out)
+        if last:
+            Tsw = max(Tsw, 0.35)
+        t_land = t_lift + Tsw
+        steps.append(dict(foot=foot, G=G, lift=t_lift, land=t_land, Tc=Tc, Ts=Ts, run=is_run, v=vk))
+        P_prev = P
+        prev_land = t_land
+    # emit stances
+    for i, sd in enumerate(steps):
+        foot = sd["foot"]
+        prev = plan.stance(foot)
+        stance_len = sd["lift"] - (prev.t_on if prev.t_on > -math.inf else sd["lift"] - 1.0)
+        is_run = sd["run"]
+        if backward:
+            phi_off, r_off = back_lift, min(0.3 * stance_len, 0.2)
+            phi_on, r_on = back_land, 0.1
+            a_off, a_on = 0.25, 0.75
+        else:
+            phi_off = toe_off * (0.5 if i == 0 else 1.0)
+            r_off = min((0.55 if is_run else 0.4) * stance_len, 0.3)
+            phi_on = heel if i < len(steps) - 1 else heel * 0.5
+            if is_run and rng.uniform() < 0.5:
+                phi_on = 0.0  # mid-foot strike
+            r_on = min(0.1, 0.3 * sd["Tc"]) if phi_on != 0.0 else 0.0
+            a_off, a_on = 0.8, 0.3
+        clear = ((0.05 + 0.025 * sd["v"]) if not is_run else (0.08 + 0.04 * sd["v"])) * s
+        swing = {"mode": "world", "clear": clear}
+        plan.step(foot, sd["G"], sd["lift"], sd["land"], phi_off=phi_off, r_off=r_off,
+                  phi_on=phi_on, r_on=r_on, swing=swing, alpha_flat_off=a_off, alpha_flat_on=a_on)
+    t_end = steps[-1]["land"] + float(rng.uniform(0.35, 0.6))
+    plan.lam_pins.append((t_end, 0.5))
+    facing_end = _heading_of(plan.feet())
+    # gait phase: 0 at a left landing, pi at a right landing (linear between landings)
+    land_t = np.array([sd["land"] for sd in steps])
+    ph = (0.0 if steps[0]["foot"] == 0 else math.pi) + math.pi * np.arange(len(steps))
+    facing_knots = [(t0, facing0)]
+    f_prev = facing0
+    for sd in steps:
+        f_now = sd["G"][2] - _sgn(sd["foot"]) * toe_out
+        f_now = f_prev + _wrap(f_now - f_prev)
+        facing_knots.append((sd["land"], (f_now + f_prev) / 2 if sd is not steps[0] else f_prev))
+        f_prev = f_now
+    facing_knots.append((t_end, f_prev + _wrap(facing_end - f_prev)))
+    env_a, env_b = steps[0]["lift"] - 0.1, steps[-1]["land"] + 0.1
+    vmax = max(sd["v"] for sd in steps)
+    A_rot = (0.04 + 0.04 * min(vmax, 2.0)) * (0.6 if backward else 1.0)
+    A_roll = 0.02 + 0.02 * min(vmax, 2.0)
+    A_arm = st["arm_swing"] * (0.12 + 0.14 * min(vmax, 2.0)) * (0.5 if backward else 1.0)
+    lean = (float(rng.uniform(0.02, 0.08)) + (0.04 * min(vmax, 4.0) if run else 0.0)) * (-0.5 if backward else 1.0)
+    tilt = float(rng.uniform(0.08, 0.16))  # anterior pelvic tilt while walking, undone by the spine
+    z_rest = plan.z_rest
+    z_loco = z_rest - 0.015 * s if not run else z_rest - 0.03 * s
+    run_elbow = float(rng.uniform(1.2, 1.6))
+
+    def fn(t):
+        env = _window(t, env_a, env_b, 0.5)
+        phase = _interp_extrap(t, land_t, ph)
+        c = np.cos(phase)
+        yaw = _keys(t, facing_knots) - env * A_rot * c
+        roll = env * A_roll * np.sin(phase)
+        pitch = env * (lean + tilt)
+        P = _neutral(plan, len(t))
+        P.arm("left", fwd=-env * A_arm * c)
+        P.arm("right", fwd=env * A_arm * c)
+        if run:
+            P.arm("left", elbow=env * (run_elbow - st["elbow"] + 0.25 * c), down=-env * 0.15)
+            P.arm("right", elbow=env * (run_elbow - st["elbow"] - 0.25 * c), down=-env * 0.15)
+        else:
+            P.arm("left", elbow=env * 0.15 * A_arm * (1 + c))
+            P.arm("right", elbow=env * 0.15 * A_arm * (1 - c))
+        P.spine(twist=env * 0.8 * A_rot * c, flex=env * (lean * 0.5 - tilt))
+        P.neck(turn=-env * 0.2 * A_rot * c, flex=-env * lean)
+        z = z_rest + (z_loco - z_rest) * _window(t, t0, t_end, 0.4)
+        return dict(z=z, yaw=yaw, pitch=pitch, roll=roll, upper=P.array())
+
+    kind = "run" if run else "walk"
+    plan.add_segment(kind, t0, t_end, fn, speed=v, backward=backward, turn=turn, steps=n)
+    plan.heading = facing_end
+
+
+SEGMENTS: dict[str, Callable[[Plan], None]] = {
+    "stand": lambda plan: seg_stand(plan),
+    "walk": lambda plan: seg_locomotion(plan, backward=plan.rng.uniform() < 0.25),
+    "run": lambda plan: seg_locomotion(plan, run=True),
+}
+
+
+def generate_motion(
+    height_m: float, rng: np.random.Generator, duration: float, fps: float = 30.0,
+    kinds: Sequence[str] | None = None,
+) -> Motion:
+    """Plan and solve one kinematic motion of at least ``duration`` seconds (uncropped)."""
+    ch = character(height_m)
+    style = _style(rng, ch)
+    plan = Plan(ch, rng, style)
+    plan.upper_names = _upper_names(ch)
+    heading = float(rng.uniform(-np.pi, np.pi))
+    x0, y0 = rng.uniform(-1.0, 1.0, 2)
+    feet = [_place((x0, y0), heading, _sgn(f), style["width"], style["toe_out"]) for f in (0, 1)]
+    plan.start(feet, heading, style["alpha"])
+    seg_stand(plan, float(rng.uniform(0.4, 0.9)), gestures=False)
+    kinds = list(kinds or [k for k in MOTION_KINDS if k in SEGMENTS])
+    while plan.t < duration:
+        kind = kinds[int(rng.integers(len(kinds)))]
+        SEGMENTS[kind](plan)
+        seg_stand(plan, float(rng.uniform(0.3, 0.8)), gestures=False)
+    return _realize(plan, fps)
+
+
+# =========================================================================================
+# validation
+# =========================================================================================
+
+
+def site_trajectories(ch: Character, q: np.ndarray, sites) -> np.ndarray:
+    """World positions (T, n, 3) of the given site ids along a trajectory (MuJoCo C FK)."""
+    out = np.zeros((len(q), len(sites), 3))
+    d = ch.d
+    for k in range(len(q)):
+        d.qpos[:] = q[k]
+        mujoco.mj_kinematics(ch.mj, d)
+        out[k] = d.site_xpos[sites]
+    return out
+
+
+def motion_report(m: Motion) -> dict:
+    """Kinematic quality numbers of a motion (what :func:`check_motion` bounds)."""
+    ch = m.character
+    q = m.q
+    hinge = np.arange(7, ch.nq)
+    viol = np.maximum(q[:, hinge] - ch.upper[hinge], 0) + np.maximum(ch.lower[hinge] - q[:, hinge], 0)
+    pos = site_trajectories(ch, q, ch.check_sites)
+    csite = pos[:, -4:]  # check_sites ends with the four contact sites
+    drift = 0.0
+    for i in range(4):
+        for a, b in _runs(m.planted[:, i]):
+            drift = max(drift, float(np.max(np.abs(csite[a:b, i] - csite[a, i]))))
+    return dict(
+        limit_violation=float(viol.max()) if viol.size else 0.0,
+        min_height=float(pos[..., 2].min()),
+        planted_drift=drift,
+        ik_err=float(m.info.get("ik_err", 0.0)),
+        root_speed_max=float(np.max(np.linalg.norm(np.diff(q[:, :3], axis=0), axis=1)) * m.fps) if len(q) > 1 else 0.0,
+    )
+
+
+def check_motion(m: Motion) -> dict:
+    """Raise :class:`GenerationError` unless the motion is kinematically clean."""
+    r = motion_report(m)
+    if r["limit_violation"] > 1e-9:
+        raise GenerationError(f"joint limit violated by {r['limit_violation']:.2e} rad")
+    if r["min_height"] < -1e-6:
+        raise GenerationError(f"floor penetration {r['min_height']:.2e} m")
+    if r["planted_drift"] > 1e-4:
+        raise GenerationError(f"planted foot moved {r['planted_drift']:.2e} m")
+    return r
