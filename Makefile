@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m jmocap.cli demo
+	$(PY) experiments/bench_physics.py --quick
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -1,5 +1,14 @@
 """Pure-JAX rigid-body physics over a :class:`jmocap.Model` (MuJoCo conventions)."""
 
+from jmocap.physics.contact import (
+    ContactPoints,
+    contact_constraints,
+    contact_points,
+    foot_corner_points,
+    friction_cone_loss,
+    project_friction_pyramid,
+    project_velocity,
+)
 from jmocap.physics.dynamics import (
     SmoothDynamics,
     bias_forces,
@@ -23,7 +32,17 @@ from jmocap.physics.kinematics import (
     site_positions,
 )
 
+from jmocap.physics.qp import solve_projection
+
 __all__ = [
+    "ContactPoints",
+    "contact_constraints",
+    "contact_points",
+    "foot_corner_points",
+    "friction_cone_loss",
+    "project_friction_pyramid",
+    "project_velocity",
+    "solve_projection",
     "Kinematics",
     "SmoothDynamics",
     "bias_forces",
