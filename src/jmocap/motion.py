@@ -1,0 +1,34 @@
+"""The result of a reconstruction: a :class:`Motion` (arrays over frames, MuJoCo conventions)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from flax import struct
+
+Array = jnp.ndarray
+
+
+@struct.dataclass
+class Motion:
+    """Per-frame reconstruction of one clip (leading axis T; a batch adds a leading axis B).
+
+    Frames where ``mask`` is False are padding (batched clips of different lengths) and carry
+    no meaning.
+    """
+
+    q: Array  # (T, nq) configuration: root pos (world), root quat wxyz, hinge angles
+    qd: Array  # (T, nv) velocity: root linear (world), root angular (body), hinge rates
+    tau: Array  # (T, nv) generalised forces tau*: joint torques, residual root force/torque in [:6]
+    grf: Array  # (T, 4, 3) world-frame contact forces at (L heel, L toe, R heel, R toe)
+    contact_prob: Array  # (T, 4) foot-contact probabilities, same order
+    target_q: Array  # (T, nq) the kinematic target (TPNet output) the dynamics tracked
+    mask: Array  # (T,) bool, True for real frames
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.q.shape[-2])
+
+    @property
+    def root_residual(self) -> Array:
+        """(T, 6) the residual (virtual) root force and torque, tau*[:, :6]."""
+        return self.tau[..., :6]
