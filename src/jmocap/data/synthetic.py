@@ -475,10 +475,14 @@ class Character:
         Jp = np.cross(aw, p[:, :, None] - an, axis=1)
         return R, p, np.concatenate([Jp, aw], axis=1)
 
-    def solve_legs(self, q, R_t, p_t, iters=40, tol_p=1e-7, tol_r=5e-7, damping=1e-6, lower=None):
+    def solve_legs(self, q, R_t, p_t, iters=40, tol_p=1e-7, tol_r=5e-7, damping=1e-6, lower=None,
+                   w_rot=None):
         """Leg IK for all frames at once, in place in ``q`` (T, nq), warm-started from the leg
         angles already in ``q``: damped Gauss-Newton with a trust region, a null-space pull
         towards no hip/ankle axial rotation, and clipping to the joint ranges.
+
+        ``w_rot`` (2, T) weighs the orientation error against the position error (1 for
+        planted feet; lower for swinging feet, whose position matters more).
 
         Returns (T, 2) residuals (max abs position error in metres) per frame and leg.
         """
@@ -508,6 +512,10 @@ class Character:
                 a, J, ep, er = a[keep], J[keep], ep[keep], er[keep]
                 if len(a) == 0:
                     break
+                if w_rot is not None:
+                    wr = w_rot[f, a][:, None]
+                    er = er * wr
+                    J = np.concatenate([J[:, :3], J[:, 3:] * wr[:, :, None]], axis=1)
                 e = np.concatenate([ep, er], axis=1)
                 Jt = np.swapaxes(J, -1, -2)
                 W = np.linalg.solve(J @ Jt + eye6, np.broadcast_to(np.eye(6), (len(a), 6, 6)))
@@ -908,7 +916,7 @@ def _com_filter(p_ref, support, z_com, intent, fps, c_start, c_end):
         rhs.append(b)
         r += 1
 
-    w_z, w_f, w_j, w_i, w_b = 1.0, 30.0 * dt**2, 2e-3 * dt**3, 0.03, 100.0
+    w_z, w_f, w_j, w_i, w_b = 1.0, 1.0 * dt**2, 2e-3 * dt**3, 0.03, 100.0
     for k in range(1, N - 1):
         if support[k] and not np.isnan(p_ref[k, 0]):
             bk = beta[k] / dt**2
@@ -951,8 +959,10 @@ def _foot_targets(plan: Plan, t, st_idx, fb, lift):
     planted = np.zeros((N, 4), bool)
     P_zmp = np.zeros((2, N, 2))
 
+    phi_max = min(1.1, -min(ch.lower[L.toe_qadr] for L in ch.legs) - 0.05)
+
     def phi_of(f, s, tq):
-        return s.phi_at(tq) + np.interp(tq, t, fb[f])
+        return np.clip(s.phi_at(tq) + np.interp(tq, t, fb[f]), -0.6, phi_max)
 
     for f in (0, 1):
         for j, s in enumerate(plan.stances[f]):
@@ -1001,7 +1011,7 @@ def _smooth_upper(x, fps, width_s=0.12):
     return np.maximum(S, x)
 
 
-def _realize(plan: Plan, fps: float, n_pass: int = 6) -> Motion:
+def _realize(plan: Plan, fps: float, n_pass: int = 8) -> Motion:
     ch = plan.ch
     T_end = plan.t
     N = int(math.floor(T_end * fps + 1e-9)) + 1
@@ -1063,6 +1073,11 @@ def _realize(plan: Plan, fps: float, n_pass: int = 6) -> Motion:
     intent = None
     for it in range(n_pass):
         R_t, p_t, toe_t, planted, P_zmp, rel = _foot_targets(plan, t, st_idx, fb, lift)
+        world = np.ones((2, N), bool)  # legs with world-frame targets (stances and world swings)
+        for f, j in rel:
+            S_ = plan.stances[f]
+            world[f] &= ~((t > S_[j].t_off) & (t < S_[j + 1].t_on))
+        world |= st_idx >= 0
         p_ref = np.full((N, 2), np.nan)
         p_ref[support] = (lam[support, None] * P_zmp[0, support]
                           + (1 - lam[support, None]) * P_zmp[1, support])
@@ -1076,7 +1091,7 @@ def _realize(plan: Plan, fps: float, n_pass: int = 6) -> Motion:
         c = _com_filter(p_ref, support, z_com, intent, fps, intent[0], intent[-1])
         pel = np.column_stack([c - off[:, :2], z0])
         _rel_swings(plan, ch, t, pel, yaw, rel, st_idx, R_t, p_t, toe_t, lift)
-        dz = _reach_fix(ch, pel, R_pel, p_t, st_idx, flights, t, fps)
+        dz = _reach_fix(ch, pel, R_pel, p_t, world, flights, t, fps)
         pel[:, 2] -= dz
         _rel_swings(plan, ch, t, pel, yaw, rel, st_idx, R_t, p_t, toe_t, lift)
         for f, L in enumerate(ch.legs):
@@ -1093,7 +1108,7 @@ def _realize(plan: Plan, fps: float, n_pass: int = 6) -> Motion:
             if np.any(q[:, a] < ch.lower[a] - 1e-9):
                 clean = False
             if np.any(excess > 0):
-                fb[f] += _smooth_upper(excess, fps)
+                fb[f] += 1.5 * _smooth_upper(excess, fps)
             R_a, p_a, _ = ch.leg_fk(f, R_pel, q[:, 0:3], q[:, L.ik_qadr])
             minz = ch.foot_points(f, R_a, p_a, q[:, L.toe_qadr])[..., 2].min(axis=-1)
             need = np.where(st_idx[f] < 0, np.maximum(0.004 - minz, 0.0), 0.0)
@@ -1159,7 +1174,7 @@ def _rel_swings(plan, ch, t, pel, yaw, swings, st_idx, R_t, p_t, toe_t, lift):
         R_t[f, m], p_t[f, m], toe_t[f, m] = R, p, kr
 
 
-def _reach_fix(ch, pel, R_pel, p_t, st_idx, flights, t, fps):
+def _reach_fix(ch, pel, R_pel, p_t, world, flights, t, fps):
     """How much to lower the pelvis (T,) so both ankles are within 99.5% of the leg length;
     smooth, >= the need at every frame, and affine (parabola-preserving) inside flights."""
     r = 0.995 * ch.reach
@@ -1169,13 +1184,22 @@ def _reach_fix(ch, pel, R_pel, p_t, st_idx, flights, t, fps):
         v = hip - p_t[f]
         h2 = v[:, 0] ** 2 + v[:, 1] ** 2
         dist = np.sqrt(h2 + v[:, 2] ** 2)
-        bad = (dist > r) & (st_idx[f] >= 0)
+        bad = (dist > r) & world[f]
         if np.any(bad & (h2 >= r * r)):
-            raise GenerationError("a planted foot is out of reach horizontally")
+            raise GenerationError("a foot target is out of reach horizontally")
         nd = np.where(bad, v[:, 2] - np.sqrt(np.maximum(r * r - h2, 0.0)), 0.0)
         need = np.maximum(need, nd)
     if not np.any(need > 0):
         return need
+    for a, b in flights:  # a flight's need moves to its ends (the correction is affine inside)
+        m = (t > a) & (t < b)
+        if m.any() and need[m].max() > 0:
+            top = need[m].max()
+            need[m] = 0.0
+            ia = int(np.nonzero(t <= a)[0][-1]) if np.any(t <= a) else 0
+            ib = int(np.nonzero(t >= b)[0][0]) if np.any(t >= b) else len(t) - 1
+            need[ia] = max(need[ia], top)
+            need[ib] = max(need[ib], top)
     S = _smooth_upper(need, fps, 0.06)
     for a, b in flights:
         m = (t > a) & (t < b)
@@ -1193,7 +1217,8 @@ def _solve_all(ch: Character, q, R_t, p_t, planted, first: bool, lower=None):
         init = np.array([-0.2, 0.0, 0.0, 0.4, -0.2, 0.0, 0.0])
         for L in ch.legs:
             q[:, L.ik_qadr] = np.clip(init, ch.lower[L.ik_qadr], ch.upper[L.ik_qadr])
-    res = ch.solve_legs(q, R_t, p_t, lower=lower)
+    w_rot = np.where(np.stack([planted[:, 0] | planted[:, 1], planted[:, 2] | planted[:, 3]]), 1.0, 0.3)
+    res = ch.solve_legs(q, R_t, p_t, lower=lower, w_rot=w_rot)
     if _DEBUG:
         print("ik: frames not converged", int(np.sum(np.max(res, axis=1) > 1e-6)), "of", N)
     # frames whose planted feet did not converge: restart from a converged neighbour
@@ -1210,7 +1235,7 @@ def _solve_all(ch: Character, q, R_t, p_t, planted, first: bool, lower=None):
         sub = q[bad].copy()
         for L in ch.legs:
             sub[:, L.ik_qadr] = q[nb[:, None], L.ik_qadr[None, :]]
-        r2 = ch.solve_legs(sub, R_t[:, bad], p_t[:, bad], iters=60, lower=lower)
+        r2 = ch.solve_legs(sub, R_t[:, bad], p_t[:, bad], iters=60, lower=lower, w_rot=w_rot[:, bad])
         better = np.max(np.where(pl[bad], r2, 0), axis=1) < r_pl[bad]
         q[bad[better]] = sub[better]
         res[bad[better]] = r2[better]
@@ -1412,7 +1437,8 @@ def seg_locomotion(plan: Plan, run: bool = False, backward: bool = False):
     path_dir0 = facing0 + (math.pi if backward else 0.0)
     f1 = int(rng.integers(2))
     # per-step speeds: ramp up over the first steps, down over the last ones
-    n_ramp = 3 if run else 2
+    n_ramp = max(2, int(math.ceil(v / (0.75 * math.sqrt(s)))))
+    n = max(n, 2 * n_ramp + 2)
     speeds = []
     for k in range(1, n + 1):
         up = min(1.0, k / (n_ramp + 1))
