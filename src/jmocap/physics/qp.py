@@ -83,25 +83,35 @@ same QP solver (W = I).
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.custom_batching import custom_vmap
 
-from jmocap.numerics import safe_norm, safe_normalize
+from jmocap.numerics import safe_div, safe_norm, safe_normalize
 
 Array = jax.Array
 
-#: Largest m solved by exhaustive enumeration under ``method="auto"``.
+#: ``method="auto"``: up to this m, enumeration only (2^m subsets are cheaper than iterating).
+ENUMERATE_DIRECT_MAX_M = 4
+#: ``method="auto"``: up to this m, the active-set fast path falls back to enumeration.
 ENUMERATE_MAX_M = 8
 #: A pivot (Schur complement) below ``PIVOT_RTOL * eps * A_kk`` means "row k depends on S".
 PIVOT_RTOL = 1e3
-#: Scaled KKT violations below ``KKT_RTOL * eps * scale`` count as satisfied (``converged``).
+#: Batch chunk of the enumeration (keeps its 2^m-subset working set in cache).
+ENUM_CHUNK = 32
+#: The active-set method adds constraint i only if ``G_i x - lower_i < -ADD_RTOL * eps * mag_i``,
+#: mag_i = |lower_i| + |G_i| |v| + |A_i| |lambda| (the size of the terms summed into the slack).
+ADD_RTOL = 1e3
+#: KKT violations below ``KKT_RTOL * eps`` (relative to the same magnitudes) count as satisfied.
 KKT_RTOL = 1e4
 
 __all__ = [
+    "ENUMERATE_DIRECT_MAX_M",
     "ENUMERATE_MAX_M",
     "ProjectionInfo",
     "friction_cone_loss",
@@ -120,10 +130,10 @@ class ProjectionInfo(NamedTuple):
     lam: Array  #: (m,) multipliers of ``G x >= lower`` (0 off the active set)
     active: Array  #: (m,) bool, the active set S used for x
     converged: Array  #: () bool, KKT conditions verified to rounding on S
-    kkt_violation: Array  #: () largest scaled KKT violation, relative to the problem scale
+    kkt_violation: Array  #: () largest KKT violation relative to the magnitudes it is made of
 
 
-# ----------------------------------------------------------------------------- helpers
+# ----------------------------------------------------------------------------- problem data
 
 
 def _prepare(Winv, G, v, lower):
@@ -143,48 +153,76 @@ def _prepare(Winv, G, v, lower):
     on = lower > -jnp.inf  # -inf: no constraint
     G = jnp.where(on[:, None], G, 0.0)
     lower = jnp.where(on, lower, 0.0)
-    WG = Winv @ G.T  # (n, m)
-    A = G @ WG
+    GW = G @ Winv  # (m, n) = (Winv G^T)^T for symmetric Winv
+    A = GW @ G.T
     A = 0.5 * (A + A.T)
     b = lower - G @ v
-    return dtype, WG, A, b, v
+    bmag = jnp.abs(lower) + jnp.abs(G) @ jnp.abs(v)  # size of the terms of b (rounding scale)
+    return dtype, GW, A, b, bmag, v
+
+
+def _eps(x) -> float:
+    return float(jnp.finfo(x.dtype).eps)
 
 
 def _row_scale(A):
     """sqrt(A_ii) (the W^-1 norm of row i), 1 for zero rows; and the 'row is nonzero' mask."""
-    diag = jnp.diagonal(A)
+    diag = jnp.diagonal(A, axis1=-2, axis2=-1)
     nz = diag > 0
     return jnp.sqrt(jnp.where(nz, diag, 1.0)), nz
 
 
+# ----------------------------------------------------------------------------- enumeration
+
+
 def _subset_bits(m: int) -> np.ndarray:
-    idx = np.arange(2**m)[:, None]
-    return ((idx >> np.arange(m)[None, :]) & 1).astype(bool)  # (2^m, m), bit i <-> row i in S
+    idx = np.arange(2**m)[None, :]
+    return ((idx >> np.arange(m)[:, None]) & 1).astype(bool)  # (m, 2^m): row i in subset s
 
 
-def _enumerate(A, b, eps):
-    """Active set by exhaustive enumeration over all 2^m subsets (sweep-operator tree)."""
+def _enumerate(A, b):
+    """Active set of one QP by exhaustive enumeration of all 2^m subsets (sweep-operator tree)."""
     m = A.shape[0]
+    eps = _eps(A)
     diag = jnp.diagonal(A)
-    C = jnp.concatenate([A, b[:, None]], axis=1)[None]  # (1, m, m+1): columns k.., b
+    # tableau columns k.., b for every subset of {0..k-1} (subsets last: they vectorise)
+    C = jnp.concatenate([A, b[:, None]], axis=1)[:, :, None]  # (m, m+1, 1)
     ok = jnp.ones((1,), bool)
     for k in range(m):
-        piv = C[:, k, 0]
-        good = piv > PIVOT_RTOL * eps * diag[k]
+        piv = C[k, 0, :]
+        good = piv > PIVOT_RTOL * eps * diag[k]  # Schur complement of row k on S: independent?
         piv = jnp.where(good, piv, 1.0)
-        rest = C[:, :, 1:]
-        rowk = rest[:, k, :] / piv[:, None]
-        swept = rest - C[:, :, :1] * rowk[:, None, :]
-        swept = swept.at[:, k, :].set(rowk)
-        C = jnp.concatenate([rest, swept], axis=0)
+        rest = C[:, 1:, :]
+        rowk = rest[k] / piv[None, :]
+        swept = rest - C[:, 0:1, :] * rowk[None]
+        swept = swept.at[k].set(rowk)
+        C = jnp.concatenate([rest, swept], axis=2)  # subset bit k: 0 | 1
         ok = jnp.concatenate([ok, ok & good])
-    t = C[:, :, 0]  # (2^m, m): lambda_i (i in S) or -w_i (i not in S)
+    t = C[:, 0, :]  # (m, 2^m): lambda_i for i in S, -w_i for i not in S
     bits = jnp.asarray(_subset_bits(m))
     d, _ = _row_scale(A)
-    viol = jnp.where(bits, -t * d, t / d)
-    score = jnp.maximum(jnp.max(viol, axis=1), 0.0)
+    viol = jnp.where(bits, -t * d[:, None], t / d[:, None])
+    score = jnp.maximum(jnp.max(viol, axis=0), 0.0)
     score = jnp.where(ok, score, jnp.inf)
-    return bits[jnp.argmin(score)]
+    return bits[:, jnp.argmin(score)]
+
+
+def _enumerate_batch(A, b):
+    if A.shape[0] <= ENUM_CHUNK:
+        return jax.vmap(_enumerate)(A, b)
+    return lax.map(lambda ab: _enumerate(*ab), (A, b), batch_size=ENUM_CHUNK)
+
+
+# ----------------------------------------------------------------------------- dual active set
+
+
+class _GIState(NamedTuple):
+    T: Array  # (m, m+1) tableau [A | b] swept on the active set
+    act: Array  # (m,) bool active set
+    p: Array  # () int32 constraint being added, -1 if none
+    lam_p: Array  # () its multiplier so far
+    done: Array  # () bool: no violated constraint left (or stuck)
+    stuck: Array  # () bool: a violated constraint cannot be satisfied (infeasible)
 
 
 def _sweep(T, k, sign):
@@ -204,43 +242,59 @@ def _sweep(T, k, sign):
     return jnp.where(is_r & is_c, -1.0 / d, new)
 
 
-def _active_set(A, b, eps, iters):
-    """Active set by the Goldfarb-Idnani dual method, a fixed number of steps on the tableau."""
+def _gi_init(A, b):
     m = A.shape[0]
-    diag = jnp.diagonal(A)
+    T = jnp.concatenate([A, b[:, None]], axis=1)
+    z = jnp.zeros((), A.dtype)
+    f = jnp.array(False)
+    return _GIState(T, jnp.zeros(m, bool), jnp.array(-1, jnp.int32), z, f, f)
+
+
+def _gi_candidate(A, bmag, st):
+    """Most violated inactive constraint (in W-distance) and whether it violates beyond rounding.
+
+    Only meaningful when no constraint is being added (p = -1, so lambda = T_Sc on S).
+    """
+    m = A.shape[0]
     d, nz = _row_scale(A)
-    scale = jnp.max(jnp.where(nz, jnp.abs(b) / d, 0.0))
-    tol_add = KKT_RTOL * eps * scale
-    T0 = jnp.concatenate([A, b[:, None]], axis=1)
+    c = st.T[:, m]
+    w = -c  # slack of the inactive rows
+    mag = bmag + jnp.abs(A) @ jnp.where(st.act, jnp.abs(c), 0.0)
+    viol = jnp.where(~st.act & nz & (w < -ADD_RTOL * _eps(A) * mag), w / d, jnp.inf)
+    pnew = jnp.argmin(viol)
+    return pnew, viol[pnew] < 0
+
+
+def _gi_steps(A, bmag, st, steps: int):
+    """``steps`` Goldfarb-Idnani steps (no-ops once done) on one QP."""
+    m = A.shape[0]
+    eps = _eps(A)
+    diag = jnp.diagonal(A)
     idx = jnp.arange(m)
 
     def body(_, st):
-        T, act, p, lam_p, done = st
+        T, act, p, lam_p, done, stuck = st
         c = T[:, m]
         has_p = p >= 0
-        lp = jnp.where(has_p, lam_p, 0.0)
-        # pick a new constraint to add when none is being added
-        colp_old = T[:, :m] @ jax.nn.one_hot(jnp.maximum(p, 0), m, dtype=T.dtype)
-        w = -c + colp_old * lp
-        viol = jnp.where(~act & nz, w / d, jnp.inf)
-        pnew = jnp.argmin(viol)
-        need = viol[pnew] < -tol_add
+        pnew, need = _gi_candidate(A, bmag, st)
         run = ~done & (has_p | need)
         pc = jnp.where(has_p, p, pnew)
+        lp = jnp.where(has_p, lam_p, 0.0)
         ep = jax.nn.one_hot(pc, m, dtype=T.dtype)
-        colp = T[:, :m] @ ep
+        colp = T[:, :m] @ ep  # A_SS^-1 A_Sp on S, Schur complement column elsewhere
         Tpp = colp @ ep
         lamS = jnp.maximum(c - colp * lp, 0.0)
         wp = -(c @ ep) + Tpp * lp
-        full_ok = Tpp > PIVOT_RTOL * eps * (diag @ ep)
+        full_ok = Tpp > PIVOT_RTOL * eps * (diag @ ep)  # p independent of S
         t1 = jnp.where(full_ok, -wp / jnp.where(full_ok, Tpp, 1.0), jnp.inf)
-        dec = act & (colp > 0)
+        dec = act & (colp > 0)  # multipliers that decrease as lambda_p grows
         ratio = jnp.where(dec, lamS / jnp.where(dec, colp, 1.0), jnp.inf)
         j = jnp.argmin(ratio)
         t2 = ratio[j]
         full = t1 <= t2
-        stuck = jnp.isinf(t1) & jnp.isinf(t2)  # infeasible: p cannot be satisfied
-        run = run & ~stuck
+        blocked = jnp.isinf(t1) & jnp.isinf(t2)  # p cannot be satisfied: infeasible
+        stuck = stuck | (run & blocked)
+        run = run & ~blocked
         k = jnp.where(full, pc, j)
         Tn = _sweep(T, k, jnp.where(full, 1.0, -1.0).astype(T.dtype))
         actn = jnp.where(full, act | (idx == pc), act & (idx != j))
@@ -249,14 +303,84 @@ def _active_set(A, b, eps, iters):
         lam_p = jnp.where(run, jnp.where(full, 0.0, lp + t2), lam_p)
         p = jnp.where(run, jnp.where(full, -1, pc), p).astype(jnp.int32)
         done = done | ~run
-        return T, act, p, lam_p, done
+        return _GIState(T, act, p, lam_p, done, stuck)
 
-    st = (T0, jnp.zeros(m, bool), jnp.array(-1, jnp.int32), jnp.zeros((), A.dtype), jnp.array(False))
-    _, act, _, _, _ = lax.fori_loop(0, iters, body, st)
-    return act
+    st = lax.fori_loop(0, steps, body, st)
+    # a state with nothing left to add is finished even if the last step was used
+    _, need = _gi_candidate(A, bmag, st)
+    return st._replace(done=st.done | ((st.p < 0) & ~need))
 
 
-def _solve_on_set(A, b, mask, eps):
+# ----------------------------------------------------------------------------- batch selection
+
+
+@functools.lru_cache(maxsize=None)
+def _selector(method: str, fast: int, extra: int, fallback: bool):
+    """Active-set selector over a batch (N, m, m), (N, m) -> (N, m) bool.
+
+    It is a ``custom_vmap`` function whose vmap rule folds the vmapped axis into N, so that
+    however the caller nests ``jax.vmap``, the body sees the whole batch and its fallbacks are
+    real conditionals (``lax.cond`` on "did every QP of the batch converge?") instead of being
+    turned into a ``select`` that always pays for both branches.
+    """
+
+    @custom_vmap
+    def select(A, b, bmag):
+        if method == "enumerate":
+            return _enumerate_batch(A, b)
+        st = jax.vmap(_gi_init)(A, b)
+        st = jax.vmap(lambda a_, m_, s_: _gi_steps(a_, m_, s_, fast))(A, bmag, st)
+        ok = st.done & ~st.stuck
+        if extra:
+            st = lax.cond(
+                jnp.all(ok),
+                lambda s: s,
+                lambda s: jax.vmap(lambda a_, m_, s_: _gi_steps(a_, m_, s_, extra))(A, bmag, s),
+                st,
+            )
+            ok = st.done & ~st.stuck
+        mask = st.act
+        if fallback:
+            mask = lax.cond(
+                jnp.all(ok),
+                lambda mk: mk,
+                lambda mk: jnp.where(ok[:, None], mk, _enumerate_batch(A, b)),
+                mask,
+            )
+        return mask
+
+    @select.def_vmap
+    def _rule(axis_size, in_batched, *args):
+        args = [a if bat else jnp.broadcast_to(a, (axis_size, *a.shape))
+                for a, bat in zip(args, in_batched, strict=True)]
+        N = args[0].shape[1]
+        out = select(*(a.reshape(axis_size * N, *a.shape[2:]) for a in args))
+        return out.reshape(axis_size, N, -1), True
+
+    return select
+
+
+def _resolve_method(m, method, iters):
+    if method not in ("auto", "enumerate", "active_set"):
+        raise ValueError(f"method must be 'auto', 'enumerate' or 'active_set', got {method!r}")
+    if method == "enumerate" and m > 16:
+        raise ValueError(f"enumeration over 2^{m} subsets is too large; use method='active_set'")
+    if method == "enumerate":
+        return ("enumerate", 0, 0, False)
+    if method == "active_set":
+        return ("active_set", int(3 * m + 4 if iters is None else iters), 0, False)
+    if m <= ENUMERATE_DIRECT_MAX_M:
+        return ("enumerate", 0, 0, False)
+    fast = int(m + 4 if iters is None else iters)
+    if m <= ENUMERATE_MAX_M:
+        return ("auto", fast, 0, True)
+    return ("auto", fast, 8 * m, False)
+
+
+# ----------------------------------------------------------------------------- final solve
+
+
+def _solve_on_set(A, b, mask):
     """lambda with lambda_S = A_SS^-1 b_S, 0 elsewhere; unrolled LDL^T, differentiable."""
     m = A.shape[0]
     both = mask[:, None] & mask[None, :]
@@ -279,50 +403,38 @@ def _solve_on_set(A, b, mask, eps):
         for j in range(k + 1, m):
             acc = acc - rows[k][j] * lam[j]
         lam[k] = acc
-    lam = jnp.stack(lam)
-    return jnp.where(mask, lam, 0.0)
-
-
-def _resolve_method(m, method, iters):
-    if method == "auto":
-        method = "enumerate" if m <= ENUMERATE_MAX_M else "active_set"
-    if method not in ("enumerate", "active_set"):
-        raise ValueError(f"method must be 'auto', 'enumerate' or 'active_set', got {method!r}")
-    if method == "enumerate" and m > 16:
-        raise ValueError(f"enumeration over 2^{m} subsets is too large; use method='active_set'")
-    if iters is None:
-        iters = 3 * m + 4
-    return method, int(iters)
+    return jnp.where(mask, jnp.stack(lam), 0.0)
 
 
 def solve_projection_info(Winv, G, v, lower, *, method: str = "auto", iters: int | None = None):
     """Like :func:`solve_projection`, also returning multipliers, active set and a KKT check.
 
-    ``method``: ``"auto"`` (enumeration for m <= 8, dual active set above), ``"enumerate"`` or
-    ``"active_set"``; ``iters``: fixed step count of the active-set method (default 3 m + 4).
+    ``method``: ``"auto"`` (default; see the module docstring), ``"enumerate"`` (always the full
+    2^m enumeration) or ``"active_set"`` (Goldfarb-Idnani only, ``iters`` steps, default 3 m + 4);
+    ``iters`` for ``"auto"`` is the fast-path step count (default m + 4).
     """
-    dtype, WG, A, b, v = _prepare(Winv, G, v, lower)
+    dtype, GW, A, b, bmag, v = _prepare(Winv, G, v, lower)
     m = A.shape[0]
-    eps = float(jnp.finfo(dtype).eps)
-    method, iters = _resolve_method(m, method, iters)
     if m == 0:
         z = jnp.zeros((0,), dtype)
         return ProjectionInfo(v, z, jnp.zeros((0,), bool), jnp.array(True), jnp.zeros((), dtype))
-    As, bs = lax.stop_gradient(A), lax.stop_gradient(b)
-    if method == "enumerate":
-        mask = _enumerate(As, bs, eps)
-    else:
-        mask = _active_set(As, bs, eps, iters)
-    lam = _solve_on_set(A, b, mask, eps)
-    x = jnp.where(jnp.any(mask), v + WG @ lam, v)
-    # certificate (no gradient needed)
+    select = _selector(*_resolve_method(m, method, iters))
+    As, bs, ms = (lax.stop_gradient(a) for a in (A, b, bmag))
+    mask = select(As[None], bs[None], ms[None])[0]
+    lam = _solve_on_set(A, b, mask)
+    x = jnp.where(jnp.any(mask), v + lam @ GW, v)
+    # certificate (no gradient needed): primal slack relative to the magnitude of its terms,
+    # multipliers (in W-distance units, lambda_i sqrt(A_ii)) relative to the largest on S
     lam_s = lax.stop_gradient(lam)
-    d, nz = _row_scale(As)
+    d, _ = _row_scale(As)
     w = As @ lam_s - bs
-    viol = jnp.where(mask, -lam_s * d, jnp.where(nz, -w / d, jnp.where(bs > 0, jnp.inf, 0.0)))
-    scale = jnp.max(jnp.where(nz, jnp.abs(bs) / d, 0.0)) + jnp.finfo(dtype).tiny
-    kkt = jnp.maximum(jnp.max(viol), 0.0) / scale
-    converged = kkt <= KKT_RTOL * eps
+    mag = ms + jnp.abs(As) @ jnp.abs(lam_s)
+    primal = jnp.where(mask, 0.0, safe_div(-w, mag, jnp.where(w < 0, jnp.inf, 0.0)))
+    lam_hat = lam_s * d
+    lam_scale = jnp.max(jnp.where(mask, jnp.abs(lam_hat) + jnp.abs(bs) / d, 0.0))
+    dual = jnp.where(mask, safe_div(-lam_hat, lam_scale), 0.0)
+    kkt = jnp.maximum(jnp.max(jnp.maximum(primal, dual)), 0.0)
+    converged = kkt <= KKT_RTOL * _eps(As)
     return ProjectionInfo(x, lam, mask, converged, kkt)
 
 
