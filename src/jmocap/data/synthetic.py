@@ -1092,7 +1092,7 @@ def _realize(plan: Plan, fps: float, n_pass: int = 8) -> Motion:
         pel = np.column_stack([c - off[:, :2], z0])
         _rel_swings(plan, ch, t, pel, yaw, rel, st_idx, R_t, p_t, toe_t, lift)
         dz = _reach_fix(ch, pel, R_pel, p_t, world, flights, t, fps)
-        pel[:, 2] -= dz
+        pel[:, 2] = _limit_fall(t, pel[:, 2] - dz, flights, 0.6 * GRAVITY)
         _rel_swings(plan, ch, t, pel, yaw, rel, st_idx, R_t, p_t, toe_t, lift)
         for f, L in enumerate(ch.legs):
             q[:, L.toe_qadr] = toe_t[f]
@@ -1210,6 +1210,36 @@ def _reach_fix(ch, pel, R_pel, p_t, world, flights, t, fps):
             ib = np.nonzero(t >= b)[0][0] if np.any(t >= b) else len(t) - 1
             S[m] = np.interp(t[m], [t[ia], t[ib]], [S[ia], S[ib]])
     return S
+
+
+def _semiconvex_minorant(t, z, a):
+    """The largest function <= z (sampled at t) whose second derivative is >= -a: the lower
+    convex hull of z + a t^2 / 2, minus a t^2 / 2. Keeps a height profile from accelerating
+    downwards faster than ``a`` (the floor can push, not pull)."""
+    y = z + 0.5 * a * t * t
+    hull = []
+    for i in range(len(t)):
+        while len(hull) >= 2:
+            i0, i1 = hull[-2], hull[-1]
+            # drop i1 if it lies above the segment i0 -> i
+            if (y[i1] - y[i0]) * (t[i] - t[i0]) >= (y[i] - y[i0]) * (t[i1] - t[i0]):
+                hull.pop()
+            else:
+                break
+        hull.append(i)
+    yh = np.interp(t, t[hull], y[hull])
+    return yh - 0.5 * a * t * t
+
+
+def _limit_fall(t, z, flights, a):
+    """Apply :func:`_semiconvex_minorant` on every support interval (flights stay ballistic)."""
+    z = z.copy()
+    edges = [t[0] - 1.0] + [x for ab in flights for x in ab] + [t[-1] + 1.0]
+    for s0, s1 in zip(edges[0::2], edges[1::2], strict=True):
+        m = np.nonzero((t >= s0) & (t <= s1))[0]
+        if len(m) > 2:
+            z[m] = _semiconvex_minorant(t[m], z[m], a)
+    return z
 
 
 def _solve_all(ch: Character, q, R_t, p_t, planted, first: bool, lower=None):
@@ -2096,3 +2126,474 @@ def check_motion(m: Motion) -> dict:
     if r["planted_drift"] > 1e-4:
         raise GenerationError(f"planted foot moved {r['planted_drift']:.2e} m")
     return r
+
+
+# =========================================================================================
+# ground truth: velocities, keypoints, contact labels
+# =========================================================================================
+
+
+def velocities(mj: mujoco.MjModel, q: np.ndarray, fps: float) -> np.ndarray:
+    """qd (T, nv) by ``mj_differentiatePos``: central differences inside the clip, one-sided at
+    the first and last frame (MuJoCo conventions: root angular velocity in the body frame)."""
+    T = len(q)
+    qd = np.zeros((T, mj.nv))
+    if T < 2:
+        return qd
+    dt = 1.0 / fps
+    for t in range(T):
+        a, b = max(t - 1, 0), min(t + 1, T - 1)
+        mujoco.mj_differentiatePos(mj, qd[t], (b - a) * dt, q[a], q[b])
+    return qd
+
+
+def contact_labels(points: np.ndarray, max_step: float = CONTACT_MAX_STEP_M,
+                   max_height: float = CONTACT_MAX_HEIGHT_M) -> np.ndarray:
+    """Rempe et al.'s rule: a point (T, 4, 3) is in contact at frame t when it moved less than
+    ``max_step`` since frame t-1 and is less than ``max_height`` above the floor. Frame 0 has
+    no previous frame and uses its displacement to frame 1 (the same one frame 1 uses)."""
+    T = len(points)
+    step = np.zeros(points.shape[:2])
+    if T > 1:
+        step[1:] = np.linalg.norm(np.diff(points, axis=0), axis=-1)
+        step[0] = step[1]
+    return ((step < max_step) & (points[..., 2] < max_height)).astype(np.float32)
+
+
+def _ground_truth(ch: Character, q: np.ndarray, layout, fps: float):
+    sites = np.array([ch.mj.site(s).id for s in layout.sites] + list(ch.contact_sites))
+    pos = site_trajectories(ch, q, sites)
+    kp3d = pos[:, : layout.num_joints]
+    contacts = contact_labels(pos[:, layout.num_joints:])
+    return kp3d, contacts
+
+
+# =========================================================================================
+# cameras and 2D keypoints
+# =========================================================================================
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Static pinhole cameras looking at the subject (OpenCV axes, no distortion)."""
+
+    focal_px: tuple[float, float] = (500.0, 2000.0)
+    image_sizes: tuple[tuple[int, int], ...] = ((1920, 1080), (1280, 720), (1080, 1920), (1000, 1000))
+    distance_m: tuple[float, float] = (3.0, 8.0)
+    height_m: tuple[float, float] = (0.3, 2.0)
+    principal_jitter: float = 0.02  # principal point offset, fraction of the image size
+    min_visible: float = 0.95  # fraction of joint-frames that must project inside the image
+    min_depth_m: float = 1.0  # closest any joint may come to the camera
+    tries: int = 30
+
+
+@dataclass(frozen=True)
+class Corruption:
+    """Detector-like corruption of the projected 2D keypoints.
+
+    Pixel noise is Gaussian with std ``noise_px + noise_rel * person height in pixels``
+    (times a per-joint factor: ``joint_scale`` for wrists/ankles/feet), temporally correlated
+    (AR(1) coefficient ``noise_corr``). Per joint and frame: an *outlier* (probability
+    ``outlier_prob``) jumps by ``outlier_scale`` * person height; a *dropped* joint
+    (fraction ``drop_prob`` of joint-frames, in bursts of mean length ``drop_burst`` frames)
+    gets confidence 0 and coordinates 0. A left/right *swap* event starts at a frame with
+    probability ``swap_prob`` and lasts ``swap_burst`` frames on average; it exchanges one
+    random left/right pair (``layout.flip_pairs``), or all of them with probability
+    ``swap_all``. Joints projecting outside the image are dropped when ``drop_outside``.
+    Confidences: clean joints draw from ``conf_clean`` and lose up to 0.3 with their noise
+    (relative to 3 std); outliers draw from ``conf_outlier``, swapped joints from
+    ``conf_swap``.
+    """
+
+    noise_px: float = 1.5
+    noise_rel: float = 0.005
+    joint_scale: float = 1.5
+    noise_corr: float = 0.5
+    outlier_prob: float = 0.01
+    outlier_scale: float = 0.15
+    drop_prob: float = 0.03
+    drop_burst: float = 3.0
+    swap_prob: float = 0.005
+    swap_burst: float = 4.0
+    swap_all: float = 0.2
+    drop_outside: bool = True
+    conf_clean: tuple[float, float] = (0.75, 0.98)
+    conf_outlier: tuple[float, float] = (0.1, 0.5)
+    conf_swap: tuple[float, float] = (0.3, 0.7)
+
+    @classmethod
+    def none(cls) -> Corruption:
+        """No corruption: exact projections with confidence 1."""
+        return cls(noise_px=0.0, noise_rel=0.0, outlier_prob=0.0, drop_prob=0.0, swap_prob=0.0,
+                   drop_outside=False, conf_clean=(1.0, 1.0))
+
+
+def look_at_extrinsics(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """World->camera [R t; 0 1] (OpenCV axes) of a camera at ``eye`` looking at ``target``
+    (the numpy twin of :meth:`jmocap.camera.Camera.look_at`)."""
+    eye = np.asarray(eye, float)
+    fwd = np.asarray(target, float) - eye
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, np.asarray(up, float))
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    E = np.eye(4)
+    E[:3, :3] = np.stack([right, down, fwd])
+    E[:3, 3] = -E[:3, :3] @ eye
+    return E
+
+
+def project_points(intrinsics, extrinsics, X):
+    """Pinhole projection of world points (..., 3): pixels (..., 2) and depth (...,)."""
+    fx, fy, cx, cy = intrinsics
+    Xc = X @ extrinsics[:3, :3].T + extrinsics[:3, 3]
+    z = Xc[..., 2]
+    uv = np.stack([fx * Xc[..., 0] / z + cx, fy * Xc[..., 1] / z + cy], axis=-1)
+    return uv, z
+
+
+def sample_camera(rng: np.random.Generator, points: np.ndarray, cfg: CameraConfig = CameraConfig()):
+    """A static camera looking at the subject whose world joints over the clip are ``points``
+    (T, J, 3). Resamples until ``min_visible`` of the joint-frames project inside the image and
+    nothing comes closer than ``min_depth_m``; the last resort shortens the focal length until
+    the subject fits. Returns (intrinsics (4,), image_size (2,), extrinsics (4, 4), info)."""
+    flat = points.reshape(-1, 3)
+    centre = (flat.min(axis=0) + flat.max(axis=0)) / 2
+    best = None
+    for attempt in range(cfg.tries):
+        W, H = cfg.image_sizes[int(rng.integers(len(cfg.image_sizes)))]
+        f = float(np.exp(rng.uniform(np.log(cfg.focal_px[0]), np.log(cfg.focal_px[1]))))
+        dist = float(rng.uniform(*cfg.distance_m))
+        cam_h = float(rng.uniform(*cfg.height_m))
+        az = float(rng.uniform(-np.pi, np.pi))
+        eye = np.array([centre[0] + dist * math.cos(az), centre[1] + dist * math.sin(az), cam_h])
+        target = np.array([centre[0], centre[1], float(rng.uniform(0.35, 0.6)) * (flat[:, 2].max())])
+        if abs(np.dot((target - eye) / np.linalg.norm(target - eye), [0, 0, 1])) > 0.98:
+            continue
+        E = look_at_extrinsics(eye, target)
+        cx = W / 2 + float(rng.uniform(-1, 1)) * cfg.principal_jitter * W
+        cy = H / 2 + float(rng.uniform(-1, 1)) * cfg.principal_jitter * H
+        K = np.array([f, f, cx, cy])
+        uv, z = project_points(K, E, flat)
+        if z.min() < cfg.min_depth_m:
+            continue
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        frac = float(inside.mean())
+        cand = (K, np.array([W, H]), E, dict(distance_m=dist, height_m=cam_h, azimuth=az, attempts=attempt + 1))
+        if frac >= cfg.min_visible:
+            return cand
+        if best is None or frac > best[0]:
+            best = (frac, cand)
+    if best is None:
+        raise GenerationError("no camera placement keeps the subject in front of the camera")
+    K, size, E, info = best[1]
+    # shrink the focal length around the principal point until the subject fits
+    for _ in range(40):
+        uv, _z = project_points(K, E, flat)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < size[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < size[1])
+        if inside.mean() >= cfg.min_visible:
+            break
+        K = K.copy()
+        K[:2] *= 0.9
+    info["focal_shrunk"] = True
+    return K, size, E, info
+
+
+def _bursts(rng, T, p_frac, mean_len, shape):
+    """Boolean (T, *shape) masks of random bursts covering about ``p_frac`` of the entries."""
+    out = np.zeros((T,) + shape, bool)
+    if p_frac <= 0 or T == 0:
+        return out
+    mean_len = max(1.0, mean_len)
+    p_start = p_frac / mean_len
+    starts = rng.uniform(size=(T,) + shape) < p_start
+    lengths = rng.geometric(1.0 / mean_len, size=(T,) + shape)
+    idx = np.argwhere(starts)
+    for i in idx:
+        t = i[0]
+        L = lengths[tuple(i)]
+        out[(slice(t, t + L),) + tuple(i[1:])] = True
+    return out
+
+
+def corrupt_keypoints(rng: np.random.Generator, uv: np.ndarray, layout, image_size,
+                      corruption: Corruption = Corruption()) -> tuple[np.ndarray, dict]:
+    """Detector-like 2D keypoints (T, J, 3) = (x, y, confidence) from clean projections
+    ``uv`` (T, J, 2). Returns the keypoints and counts of what was done."""
+    c = corruption
+    T, J, _ = uv.shape
+    W, H = float(image_size[0]), float(image_size[1])
+    kp = np.zeros((T, J, 3))
+    kp[..., :2] = uv
+    # person height in pixels per frame
+    ph = np.maximum(uv[..., 1].max(axis=1) - uv[..., 1].min(axis=1), 1.0)
+    names = [n.lower() for n in layout.joints]
+    jscale = np.array([c.joint_scale if any(k in n for k in ("wrist", "ankle", "foot", "toe", "heel"))
+                       else 1.0 for n in names])
+    sigma = (c.noise_px + c.noise_rel * ph)[:, None] * jscale[None, :]  # (T, J)
+    noise = np.zeros((T, J, 2))
+    if np.any(sigma > 0):
+        white = rng.normal(size=(T, J, 2))
+        rho = float(np.clip(c.noise_corr, 0.0, 0.99))
+        noise[0] = white[0]
+        for t in range(1, T):
+            noise[t] = rho * noise[t - 1] + math.sqrt(1 - rho * rho) * white[t]
+        noise *= sigma[..., None]
+    kp[..., :2] += noise
+    lo, hi = c.conf_clean
+    base = rng.uniform(lo, hi, size=(T, J))
+    mag = np.linalg.norm(noise, axis=-1) / np.maximum(3 * sigma, 1e-9)
+    conf = base - 0.3 * np.clip(mag, 0, 1) * (sigma > 0)
+    # outliers
+    out_mask = rng.uniform(size=(T, J)) < c.outlier_prob
+    if out_mask.any():
+        n = int(out_mask.sum())
+        ang = rng.uniform(0, 2 * np.pi, n)
+        r = np.abs(rng.normal(size=n)) * c.outlier_scale * ph[np.nonzero(out_mask)[0]] + 5.0
+        kp[out_mask, 0] += r * np.cos(ang)
+        kp[out_mask, 1] += r * np.sin(ang)
+        conf[out_mask] = rng.uniform(*c.conf_outlier, size=n)
+    # left/right swaps
+    swapped = np.zeros((T, J), bool)
+    n_swaps = 0
+    if c.swap_prob > 0 and layout.flip_pairs:
+        t = 0
+        while t < T:
+            if rng.uniform() < c.swap_prob:
+                L = int(rng.geometric(1.0 / max(c.swap_burst, 1.0)))
+                pairs = list(layout.flip_pairs) if rng.uniform() < c.swap_all else \
+                    [layout.flip_pairs[int(rng.integers(len(layout.flip_pairs)))]]
+                sl = slice(t, min(T, t + L))
+                for a, b in pairs:
+                    kp[sl, a, :2], kp[sl, b, :2] = kp[sl, b, :2].copy(), kp[sl, a, :2].copy()
+                    swapped[sl, a] = swapped[sl, b] = True
+                n_swaps += 1
+                t += L
+            else:
+                t += 1
+        if swapped.any():
+            conf[swapped] = rng.uniform(*c.conf_swap, size=int(swapped.sum()))
+    # drops
+    drop = _bursts(rng, T, c.drop_prob, c.drop_burst, (J,))
+    if c.drop_outside:
+        x, y = kp[..., 0], kp[..., 1]
+        drop |= (x < 0) | (x >= W) | (y < 0) | (y >= H)
+    conf = np.clip(conf, 0.01, 1.0)
+    conf[drop] = 0.0
+    kp[..., 2] = conf
+    kp[drop, :2] = 0.0
+    stats = dict(dropped=float(drop.mean()), outliers=int(out_mask.sum()), swap_events=n_swaps,
+                 noise_std_px=float(np.mean(sigma)))
+    return kp.astype(np.float32), stats
+
+
+def clean_keypoints2d(clip: Clip) -> np.ndarray:
+    """The exact projection (T, J, 2) of a synthetic clip's ``gt_keypoints3d`` with its camera
+    (what the 2D keypoints are before corruption)."""
+    if clip.gt_keypoints3d is None or clip.extrinsics is None:
+        raise ValueError(f"clip {clip.name!r} has no 3D ground truth or no extrinsics")
+    uv, _ = project_points(clip.intrinsics, clip.extrinsics, clip.gt_keypoints3d.astype(np.float64))
+    return uv
+
+
+# =========================================================================================
+# physics variant: track the kinematic motion in MuJoCo C
+# =========================================================================================
+
+
+@dataclass(frozen=True)
+class PhysicsConfig:
+    """Tracking controller of the physics variant (see ``docs/data.md``).
+
+    Hinges: ``tau = tau_ff + kp (q_ref - q) + kd (qd_ref - qd)`` with ``kp = M_jj w^2``,
+    ``kd = 2 zeta M_jj w`` (``M_jj``: the joint-space inertia at the standing pose), the damping
+    part integrated implicitly (as MuJoCo ``dof_damping`` with the ``implicitfast``
+    integrator); ``tau_ff`` is inverse dynamics of the reference with the contact forces
+    distributed over the planted contact points (non-negative least squares in a friction
+    pyramid). Root: the part of the reference's root wrench the contacts cannot explain, plus a
+    weak PD on the root pose (``root_freq_hz``); both are the *residual* force / torque.
+    """
+
+    substeps_per_frame: int = 0  # 0: as many as make the step <= max_dt
+    max_dt: float = 0.004
+    joint_freq_hz: float = 6.0
+    joint_zeta: float = 1.0
+    min_inertia: float = 0.02
+    root_freq_hz: float = 1.0
+    root_zeta: float = 1.0
+    friction: float = 0.9
+    fall_height: float = 0.5  # fraction of the standing pelvis height
+    fall_tilt_deg: float = 60.0
+
+
+def _pyramid(mu):
+    d = np.array([[mu, 0, 1], [-mu, 0, 1], [0, mu, 1], [0, -mu, 1]], float)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _feedforward(ch: Character, mj, q, qd, qdd, planted, mu):
+    """Inverse dynamics of the reference (T frames): hinge feed-forward torques (T, nv) and the
+    root wrench the planted contacts cannot supply (T, 6)."""
+    T = len(q)
+    d = mujoco.MjData(mj)
+    ff = np.zeros((T, mj.nv))
+    res = np.zeros((T, 6))
+    jp = np.zeros((3, mj.nv))
+    D = _pyramid(mu)
+    w, l = 0.035 * ch.scale, 0.03 * ch.scale
+    patch = ([np.array([0.0, w, 0.0]), np.array([0.0, -w, 0.0]), np.array([l, 0.0, 0.0])],  # heel
+             [np.array([0.0, w, 0.0]), np.array([0.0, -w, 0.0]), np.array([l, 0.0, 0.0]),
+              np.array([-l, 0.0, 0.0])])  # toe
+    for k in range(T):
+        d.qpos[:], d.qvel[:], d.qacc[:] = q[k], qd[k], qdd[k]
+        mujoco.mj_inverse(mj, d)
+        tau = d.qfrc_inverse.copy()
+        pts = np.nonzero(planted[k])[0]
+        force_gen = np.zeros(mj.nv)
+        if len(pts):
+            mujoco.mj_kinematics(mj, d)
+            mujoco.mj_comPos(mj, d)
+            cols = []
+            for i in pts:
+                sid = int(ch.contact_sites[i])
+                body = int(mj.site_bodyid[sid])
+                R = d.xmat[body].reshape(3, 3)
+                for off in patch[i % 2]:  # a small sole patch around the contact site
+                    p = d.site_xpos[sid] + R @ off
+                    mujoco.mj_jac(mj, d, jp, None, p, body)
+                    cols.append(jp.T @ D.T)  # (nv, 4)
+            A = np.concatenate(cols, axis=1)  # (nv, 4n)
+            n = A.shape[1]
+            Aw = np.vstack([A[:6], 1e-2 * np.eye(n)])
+            bw = np.concatenate([tau[:6], np.zeros(n)])
+            c, _ = nnls(Aw, bw, maxiter=50 * n)
+            force_gen = A @ c
+        ff[k] = tau - force_gen
+        res[k] = ff[k, :6]
+        ff[k, :6] = 0.0
+    return ff, res
+
+
+def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, planted: np.ndarray,
+                      cfg: PhysicsConfig = PhysicsConfig()) -> dict:
+    """Track a kinematic motion in MuJoCo C (floor contact, PD + feed-forward hinges, residual
+    root wrench). Returns q, qd (T, nq/nv) of the simulated motion sampled at the frames,
+    ``tau`` (T, nv) applied generalised forces and ``grf`` (T, 4, 3) world-frame foot contact
+    forces (each averaged over the frame's substeps), and residual / tracking statistics."""
+    T = len(q_ref)
+    mj = copy.deepcopy(ch.mj)
+    frame_dt = 1.0 / fps
+    n = cfg.substeps_per_frame or max(1, int(math.ceil(frame_dt / cfg.max_dt - 1e-9)))
+    dt = frame_dt / n
+    mj.opt.timestep = dt
+    mj.opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    nv = mj.nv
+    qd_ref = velocities(mj, q_ref, fps)
+    qdd_ref = np.zeros_like(qd_ref)
+    if T > 1:
+        qdd_ref[1:-1] = (qd_ref[2:] - qd_ref[:-2]) * fps / 2
+        qdd_ref[0], qdd_ref[-1] = (qd_ref[1] - qd_ref[0]) * fps, (qd_ref[-1] - qd_ref[-2]) * fps
+    ff, id_res = _feedforward(ch, mj, q_ref, qd_ref, qdd_ref, planted, cfg.friction)
+    # gains from the joint-space inertia at the standing pose
+    d0 = mujoco.MjData(mj)
+    d0.qpos[:] = ch.q_stand
+    mujoco.mj_forward(mj, d0)
+    M = np.zeros((nv, nv))
+    mujoco.mj_fullM(mj, d0, M)
+    Mjj = np.maximum(np.diag(M)[6:], cfg.min_inertia)
+    w = 2 * np.pi * cfg.joint_freq_hz
+    kp = Mjj * w * w
+    kd = 2 * cfg.joint_zeta * Mjj * w
+    mj.dof_damping[6:] = kd
+    mass = float(np.sum(mj.body_mass))
+    weight = mass * GRAVITY
+    wr = 2 * np.pi * cfg.root_freq_hz
+    I_root = np.diag(M)[3:6].copy()
+    # foot geoms -> which foot; contact sites
+    foot_bodies = {ch.legs[0].ankle_body, ch.legs[0].toe_body, ch.legs[1].ankle_body, ch.legs[1].toe_body}
+    floor = [g for g in range(mj.ngeom) if mj.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE]
+    if not floor:
+        raise ValueError("the model has no floor plane")
+    floor = set(floor)
+    d = mujoco.MjData(mj)
+    d.qpos[:] = q_ref[0]
+    d.qvel[:] = qd_ref[0]
+    mujoco.mj_forward(mj, d)
+    q_out = np.zeros((T, mj.nq))
+    qd_out = np.zeros((T, nv))
+    tau_out = np.zeros((T, nv))
+    grf_out = np.zeros((T, 4, 3))
+    resid = np.zeros((T, 6))
+    f6 = np.zeros(6)
+    nonfoot = 0
+    z_fall = cfg.fall_height * ch.z_stand
+    cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg))
+    qa = np.arange(7, mj.nq)
+    for k in range(T):
+        q_out[k], qd_out[k] = d.qpos, d.qvel
+        k1 = min(k + 1, T - 1)
+        R_a, R_b = _quat2mat(q_ref[k, 3:7]), _quat2mat(q_ref[k1, 3:7])
+        acc_tau = np.zeros(nv)
+        acc_grf = np.zeros((4, 3))
+        for i in range(n):
+            a = i / n
+            qr_h = (1 - a) * q_ref[k, qa] + a * q_ref[k1, qa]
+            qdr = (1 - a) * qd_ref[k] + a * qd_ref[k1]
+            tff = (1 - a) * ff[k] + a * ff[k1]
+            rres = (1 - a) * id_res[k] + a * id_res[k1]
+            pr = (1 - a) * q_ref[k, :3] + a * q_ref[k1, :3]
+            Rr = _slerp_R(R_a, R_b, np.array(a))
+            qfrc = np.zeros(nv)
+            qfrc[6:] = tff[6:] + kp * (qr_h - d.qpos[7:]) + kd * qdr[6:]
+            R = d.xmat[ch.pelvis].reshape(3, 3)
+            e_rot = R.T @ _log_rot(Rr @ R.T)
+            root = np.zeros(6)
+            root[:3] = mass * (wr * wr * (pr - d.qpos[:3]) + 2 * cfg.root_zeta * wr * (qdr[:3] - d.qvel[:3]))
+            root[3:] = I_root * (wr * wr * e_rot + 2 * cfg.root_zeta * wr * (qdr[3:6] - d.qvel[3:6]))
+            qfrc[:6] = rres + root
+            d.qfrc_applied[:] = qfrc
+            mujoco.mj_step(mj, d)
+            applied = qfrc.copy()
+            applied[6:] -= kd * d.qvel[6:]  # the implicit damping acted with the new velocity
+            acc_tau += applied
+            for c in range(d.ncon):
+                con = d.contact[c]
+                g1, g2 = int(con.geom1), int(con.geom2)
+                if g1 in floor:
+                    other, sign = g2, 1.0
+                elif g2 in floor:
+                    other, sign = g1, -1.0
+                else:
+                    continue
+                if mj.geom_bodyid[other] not in foot_bodies:
+                    nonfoot += 1
+                    continue
+                mujoco.mj_contactForce(mj, d, c, f6)
+                fw = sign * (con.frame.reshape(3, 3).T @ f6[:3])
+                sp = d.site_xpos[ch.contact_sites]
+                j = int(np.argmin(np.linalg.norm(sp - con.pos, axis=1)))
+                acc_grf[j] += fw
+        tau_out[k] = acc_tau / n
+        grf_out[k] = acc_grf / n
+        resid[k] = tau_out[k, :6]
+        z = d.qpos[2]
+        up = d.xmat[ch.pelvis].reshape(3, 3)[2, 2]
+        if not np.all(np.isfinite(d.qpos)) or z < z_fall or up < cos_tilt:
+            raise GenerationError(f"the simulated character fell at frame {k}")
+    F = np.linalg.norm(resid[:, :3], axis=1) / weight
+    Tq = np.linalg.norm(resid[:, 3:], axis=1) / (weight * ch.height)
+    hinge_err = np.abs(_wrap(q_out[:, 7:] - q_ref[:, 7:]))
+    stats = dict(
+        substeps=n,
+        timestep=dt,
+        residual_force_mean=float(F.mean()),
+        residual_force_max=float(F.max()),
+        residual_torque_mean=float(Tq.mean()),
+        residual_torque_max=float(Tq.max()),
+        feedforward_residual_force_mean=float(np.mean(np.linalg.norm(id_res[:, :3], axis=1)) / weight),
+        tracking_root_mm=float(np.mean(np.linalg.norm(q_out[:, :3] - q_ref[:, :3], axis=1)) * 1000),
+        tracking_joint_deg=float(np.degrees(hinge_err.mean())),
+        grf_vertical_mean_over_weight=float(grf_out[..., 2].sum(axis=1).mean() / weight),
+        nonfoot_contacts=int(nonfoot),
+    )
+    return dict(q=q_out, qd=qd_out, tau=tau_out, grf=grf_out, stats=stats)
