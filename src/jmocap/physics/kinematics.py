@@ -95,7 +95,9 @@ def forward_kinematics(model: Model, q: Array) -> Kinematics:
     xpos = jnp.zeros((nbody, 3), dtype)
     for level in topo.levels:
         p = parent[level]
-        xmat = xmat.at[level].set(xmat[p] @ R[level])
+        # (an elementwise product-sum, not `@`: a matmul here hit an XLA verifier error under
+        # nested vmap, batch over clips of batch over frames; jax 0.10)
+        xmat = xmat.at[level].set(jnp.sum(xmat[p][..., :, :, None] * R[level][..., None, :, :], -2))
         xpos = xpos.at[level].set(xpos[p] + jnp.einsum("bij,bj->bi", xmat[p], t[level]))
 
     xipos = xpos + jnp.einsum("bij,bj->bi", xmat, _c(model.body_ipos, dtype))
