@@ -2735,8 +2735,8 @@ def generate_clip(seed: int, index: int = 0, config: SynthConfig = SynthConfig()
             gt_contacts=contacts,
             gt_tau=tau,
             gt_grf=grf,
-            height_m=ch.height,
-            mass_kg=ch.mass,
+            height_m=round(ch.height, 6),
+            mass_kg=round(ch.mass, 6),
             meta=meta,
         )
     raise GenerationError(f"clip {index} (seed {seed}): no valid motion in {config.max_attempts} "

@@ -1,0 +1,259 @@
+"""The ``jmocap`` command line: ``jmocap <command> ...``.
+
+Each command is one function that configures its own ``argparse`` sub-parser and sets
+``func`` (what runs, taking the parsed arguments, returning an exit status). Adding a command
+is one decorated function::
+
+    @command("demo", "run the demo")
+    def _demo(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--frames", type=int, default=100)
+        p.set_defaults(func=run_demo)     # run_demo(args) -> int | None
+
+Commands so far: ``data synth`` (synthetic clip archives), ``data info`` (summarise an
+archive).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable
+
+COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None]]] = {}
+
+
+def command(name: str, help: str):
+    """Register a top-level command: the decorated function configures its sub-parser."""
+
+    def deco(fn):
+        COMMANDS[name] = (help, fn)
+        return fn
+
+    return deco
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="jmocap", description="Physics-aware human motion capture from 2D keypoints."
+    )
+    sub = p.add_subparsers(dest="command", metavar="<command>", required=True)
+    for name, (help_, configure) in COMMANDS.items():
+        configure(sub.add_parser(name, help=help_, description=help_))
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``jmocap`` script; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+# =========================================================================================
+# progress
+# =========================================================================================
+
+
+class Progress:
+    """A small text progress bar on stderr (redrawn at most 5 times a second)."""
+
+    def __init__(self, total: int, label: str = "", enabled: bool = True, stream=None):
+        self.total = max(int(total), 0)
+        self.label = label
+        self.enabled = enabled
+        self.stream = stream or sys.stderr
+        self.n = 0
+        self.frames = 0
+        self.t0 = time.perf_counter()
+        self._last = 0.0
+
+    def update(self, n: int = 1, frames: int = 0) -> None:
+        self.n += n
+        self.frames += frames
+        now = time.perf_counter()
+        if self.enabled and (now - self._last > 0.2 or self.n >= self.total):
+            self._last = now
+            self._draw(now)
+
+    def _draw(self, now: float) -> None:
+        el = now - self.t0
+        frac = self.n / self.total if self.total else 1.0
+        width = 24
+        bar = "#" * int(round(frac * width))
+        fps = self.frames / el if el > 0 else 0.0
+        eta = el / self.n * (self.total - self.n) if self.n else 0.0
+        self.stream.write(
+            f"\r{self.label} {self.n}/{self.total} [{bar:<{width}}] {self.frames} frames "
+            f"{fps:.0f} fr/s {el:.0f}s ETA {eta:.0f}s "
+        )
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self._draw(time.perf_counter())
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+# =========================================================================================
+# jmocap data ...
+# =========================================================================================
+
+
+def _frames_arg(text: str):
+    """``N`` or ``MIN:MAX`` frames per clip."""
+    try:
+        if ":" in text:
+            a, b = (int(x) for x in text.split(":", 1))
+            if not 2 <= a <= b:
+                raise ValueError
+            return (a, b)
+        n = int(text)
+        if n < 2:
+            raise ValueError
+        return n
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected N or MIN:MAX with 2 <= MIN <= MAX, got {text!r}") from None
+
+
+def _kinds_arg(text: str):
+    from jmocap.data.synthetic import SEGMENTS
+
+    kinds = tuple(k.strip() for k in text.split(",") if k.strip())
+    bad = [k for k in kinds if k not in SEGMENTS]
+    if bad or not kinds:
+        raise argparse.ArgumentTypeError(f"unknown motion kind(s) {bad}; known: {', '.join(SEGMENTS)}")
+    return kinds
+
+
+@command("data", "synthetic data and clip archives")
+def _data(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="data_command", metavar="<data command>", required=True)
+    s = sub.add_parser(
+        "synth",
+        help="generate an archive of synthetic clips",
+        description=(
+            "Generate synthetic clips (procedural motions on MuJoCo, random subject and camera, "
+            "detector-like 2D keypoints) into an archive folder with manifest.jsonl. "
+            "Deterministic for a seed; an interrupted run resumes where it stopped."
+        ),
+    )
+    s.add_argument("--out", required=True, help="archive folder (created; resumed if it exists)")
+    s.add_argument("--clips", type=int, required=True, help="number of clips")
+    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--physics", action="store_true",
+                   help="track each motion in MuJoCo simulation (gt_tau, gt_grf)")
+    s.add_argument("--frames-per-clip", type=_frames_arg, default=(150, 300), metavar="N|MIN:MAX",
+                   help="clip length in frames (default 150:300)")
+    s.add_argument("--layout", default="body25", choices=["body25", "coco17", "h36m17"],
+                   help="2D keypoint layout (default body25)")
+    s.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
+    s.add_argument("--kinds", type=_kinds_arg, default=None, metavar="K1,K2",
+                   help="motion kinds to draw from (default: all)")
+    s.add_argument("--no-corruption", action="store_true", help="exact 2D projections, confidence 1")
+    s.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=cmd_data_synth)
+
+    i = sub.add_parser("info", help="summarise a clip archive (folder, .zip or .tar)")
+    i.add_argument("path")
+    i.set_defaults(func=cmd_data_info)
+
+
+def _synth_one(job):
+    """Worker: (seed, index, config) -> (index, clip | None, error | None)."""
+    from jmocap.data.synthetic import GenerationError, generate_clip
+
+    seed, index, config = job
+    try:
+        return index, generate_clip(seed, index, config), None
+    except GenerationError as e:
+        return index, None, str(e)
+
+
+def cmd_data_synth(args) -> int:
+    from jmocap.data.archive import ArchiveWriter
+    from jmocap.data.synthetic import Corruption, SynthConfig, clip_name
+
+    if args.clips < 0:
+        print("jmocap data synth: --clips must be >= 0", file=sys.stderr)
+        return 2
+    config = SynthConfig(
+        frames=args.frames_per_clip,
+        fps=args.fps,
+        layout=args.layout,
+        physics=args.physics,
+        kinds=args.kinds,
+        corruption=Corruption.none() if args.no_corruption else Corruption(),
+    )
+    settings = {"generator": "jmocap.data.synthetic", "seed": args.seed, "config": config.to_json()}
+    t0 = time.perf_counter()
+    written = failed = skipped = frames = 0
+    with ArchiveWriter(args.out, settings) as writer:
+        todo = [i for i in range(args.clips) if not writer.has(clip_name(i))]
+        skipped = args.clips - len(todo)
+        bar = Progress(len(todo), "synth", enabled=not args.quiet)
+        jobs = [(args.seed, i, config) for i in todo]
+        if args.workers > 1 and len(jobs) > 1:
+            import multiprocessing as mp
+
+            ctx = mp.get_context("spawn")
+            with ctx.Pool(min(args.workers, len(jobs))) as pool:
+                results = pool.imap(_synth_one, jobs)
+                written, failed, frames = _consume(results, writer, bar, args.seed)
+        else:
+            written, failed, frames = _consume(map(_synth_one, jobs), writer, bar, args.seed)
+        bar.close()
+    el = time.perf_counter() - t0
+    print(
+        f"jmocap data synth: {written} clips written, {failed} failed, {skipped} already there; "
+        f"{frames} frames in {el:.1f} s ({frames / el if el > 0 else 0:.0f} frames/s) -> {args.out}"
+    )
+    return 1 if failed and not written else 0
+
+
+def _consume(results, writer, bar, seed):
+    from jmocap.data.synthetic import clip_name
+
+    written = failed = frames = 0
+    for index, clip, error in results:
+        if clip is None:
+            writer.add_failure(clip_name(index), error, index=index, seed=seed)
+            failed += 1
+            bar.update(1)
+            continue
+        extra = {"index": index, "seed": seed, "physics": bool(clip.meta.get("physics_variant"))}
+        phys = clip.meta.get("physics")
+        if phys:
+            extra["residual_force_mean"] = phys["residual_force_mean"]
+            extra["residual_force_max"] = phys["residual_force_max"]
+        writer.add(clip, **extra)
+        written += 1
+        frames += clip.num_frames
+        bar.update(1, clip.num_frames)
+    return written, failed, frames
+
+
+def cmd_data_info(args) -> int:
+    from collections import Counter
+
+    from jmocap.data.archive import Archive, ArchiveError
+
+    try:
+        with Archive(args.path) as a:
+            ok = a.ok
+            kinds = Counter(e.get("kind") for e in ok)
+            print(f"{args.path}: {len(ok)} clips, {sum(e.get('frames', 0) for e in ok)} frames, "
+                  f"{len(a.manifest) - len(ok)} failed")
+            print("kinds: " + ", ".join(f"{k} {n}" for k, n in kinds.most_common()))
+            if a.settings:
+                print("settings: " + json.dumps(a.settings, sort_keys=True))
+    except (ArchiveError, FileNotFoundError) as e:
+        print(f"jmocap data info: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,382 @@
+"""Clip archives: a folder of ``jmocap-clip-1`` .npz files plus ``manifest.jsonl``.
+
+Layout of an archive folder::
+
+    DIR/
+      archive.json        settings the archive was written with (JSON object, optional)
+      manifest.jsonl      one JSON object per line, one line per clip, in write order
+      synth_000000.npz    the clips (compressed .npz, see jmocap.data.clip)
+      ...
+
+Every manifest line has ``name``, ``file`` (relative to the folder), ``status`` (``"ok"`` or
+``"failed"``) and, for written clips, ``frames``, ``fps``, ``layout``, ``kind`` (motion
+kind), ``height_m``, ``bytes`` and ``sha256`` (of the file), plus whatever the writer adds
+(``index``, ``seed``, ``error`` of a failed clip, ...). A later line for the same name
+supersedes an earlier one.
+
+Writing is crash-safe: each clip file is written to a temporary file in the folder and renamed
+into place (``os.replace``), then its manifest line is appended and flushed to disk. An
+interrupted run therefore leaves complete clips, at most one truncated last manifest line
+(ignored by the reader, cut off by the next writer) and possibly a clip file without a line
+(rewritten when the run resumes). :class:`ArchiveWriter` resumes an existing archive: clips
+already listed are skipped by the caller via :meth:`ArchiveWriter.has`.
+
+Clip files are written deterministically (fixed zip timestamps), so the same clip gives the
+same bytes and the same ``sha256``.
+
+:class:`Archive` reads an archive from a folder, a ``.zip`` or a ``.tar`` (``.tar.gz``,
+``.tgz``) file, by its manifest.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tarfile
+import tempfile
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+import numpy as np
+
+from jmocap.data.clip import Clip, ClipFormatError, clip_from_arrays, clip_to_arrays
+
+MANIFEST = "manifest.jsonl"
+ARCHIVE_META = "archive.json"
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+class ArchiveError(ValueError):
+    """A malformed or inconsistent archive (the message names the file and line)."""
+
+
+# --- files ---------------------------------------------------------------------------------
+
+
+def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    """A compressed .npz (as ``numpy.savez_compressed`` writes it) with fixed timestamps, so
+    equal arrays give equal bytes."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for key in sorted(arrays):
+            arr = np.asanyarray(arrays[key])
+            member = io.BytesIO()
+            np.lib.format.write_array(member, arr, allow_pickle=False)
+            info = zipfile.ZipInfo(key + ".npy", date_time=_ZIP_DATE)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, member.getvalue())
+    return buf.getvalue()
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def _parse_manifest(text: str, where: str) -> list[dict[str, Any]]:
+    """Manifest lines; a truncated (unparsable) *last* line is ignored, others are errors."""
+    entries = []
+    lines = text.split("\n")
+    complete = text.endswith("\n")
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        last = i == len(lines) - 1 or (i == len(lines) - 2 and not lines[-1].strip())
+        try:
+            e = json.loads(line)
+        except json.JSONDecodeError as err:
+            if last and not complete:
+                break  # an interrupted append
+            raise ArchiveError(f"{where}: line {i + 1} is not valid JSON: {err}") from None
+        if not isinstance(e, dict) or "name" not in e or "status" not in e:
+            raise ArchiveError(f"{where}: line {i + 1} must be an object with 'name' and 'status'")
+        if last and not complete:
+            break  # complete JSON but no newline: treat as interrupted too
+        entries.append(e)
+    return entries
+
+
+def latest(entries: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The last entry per clip name, in first-appearance order."""
+    out: dict[str, dict[str, Any]] = {}
+    for e in entries:
+        out[e["name"]] = e
+    return out
+
+
+# --- writer --------------------------------------------------------------------------------
+
+
+class ArchiveWriter:
+    """Append clips to an archive folder (created if needed), resuming an existing one.
+
+    ``settings`` (JSON-serialisable) are stored in ``archive.json``; resuming an archive
+    written with different settings raises :class:`ArchiveError` (it would mix two streams).
+    """
+
+    def __init__(self, root: str | os.PathLike, settings: dict[str, Any] | None = None):
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.manifest_path = self.root / MANIFEST
+        meta_path = self.root / ARCHIVE_META
+        if settings is not None:
+            settings = json.loads(json.dumps(settings, sort_keys=True))
+            if meta_path.exists():
+                try:
+                    old = json.loads(meta_path.read_text())
+                except json.JSONDecodeError as e:
+                    raise ArchiveError(f"{meta_path}: not valid JSON: {e}") from None
+                if old != settings:
+                    diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
+                    raise ArchiveError(
+                        f"{self.root}: the archive was written with different settings "
+                        f"(differences in {diff}); use another folder or the same settings"
+                    )
+            else:
+                _atomic_write(meta_path, (json.dumps(settings, indent=2, sort_keys=True) + "\n").encode())
+        self.entries: dict[str, dict[str, Any]] = {}
+        if self.manifest_path.exists():
+            text = self.manifest_path.read_text()
+            self.entries = latest(_parse_manifest(text, str(self.manifest_path)))
+            if text and not text.endswith("\n"):
+                # cut off the interrupted last line before appending
+                keep = text[: text.rfind("\n") + 1]
+                _atomic_write(self.manifest_path, keep.encode())
+        self._f = open(self.manifest_path, "a", encoding="utf-8")  # noqa: SIM115
+
+    # -- state -------------------------------------------------------------------------------
+    def has(self, name: str, verify: bool = False) -> bool:
+        """Whether ``name`` is already in the archive (written, with its file present; or
+        recorded as failed). ``verify`` also checks the file's sha256."""
+        e = self.entries.get(name)
+        if e is None:
+            return False
+        if e["status"] != "ok":
+            return True
+        path = self.root / e["file"]
+        if not path.exists():
+            return False
+        return not verify or _sha256(path.read_bytes()) == e.get("sha256")
+
+    # -- writing -----------------------------------------------------------------------------
+    def _append(self, entry: dict[str, Any]) -> None:
+        self._f.write(json.dumps(entry, sort_keys=True) + "\n")
+        self._f.flush()
+        os.fsync(self._f.fileno())
+        self.entries[entry["name"]] = entry
+
+    def add(self, clip: Clip, **extra: Any) -> dict[str, Any]:
+        """Write ``clip`` (as ``<name>.npz``) and its manifest line; returns the line."""
+        if not isinstance(clip, Clip):
+            raise TypeError(f"ArchiveWriter.add expects a Clip, got {type(clip).__name__}")
+        fname = f"{clip.name}.npz"
+        if "/" in clip.name or clip.name.startswith("."):
+            raise ArchiveError(f"clip name {clip.name!r} cannot be a file name in the archive")
+        data = npz_bytes(clip_to_arrays(clip))
+        _atomic_write(self.root / fname, data)
+        entry = {
+            "name": clip.name,
+            "file": fname,
+            "status": "ok",
+            "frames": clip.num_frames,
+            "fps": clip.fps,
+            "layout": clip.layout,
+            "kind": clip.meta.get("kind"),
+            "height_m": clip.height_m,
+            "bytes": len(data),
+            "sha256": _sha256(data),
+        }
+        entry.update(extra)
+        self._append(entry)
+        return entry
+
+    def add_failure(self, name: str, error: str, **extra: Any) -> dict[str, Any]:
+        """Record a clip that could not be made (the run goes on)."""
+        entry = {"name": name, "file": None, "status": "failed", "error": str(error)}
+        entry.update(extra)
+        self._append(entry)
+        return entry
+
+    def close(self) -> None:
+        if not self._f.closed:
+            self._f.close()
+
+    def __enter__(self) -> ArchiveWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+# --- reader --------------------------------------------------------------------------------
+
+
+class Archive:
+    """Read-only view of an archive in a folder, a ``.zip`` or a ``.tar[.gz]`` file.
+
+    ``len(archive)`` and iteration cover the clips whose latest manifest status is ``ok``, in
+    manifest order; :meth:`load` reads one by name; :attr:`manifest` has every latest line
+    (failed clips included).
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        if self.path.is_dir():
+            self._kind = "dir"
+            mpath = self.path / MANIFEST
+            if not mpath.exists():
+                raise ArchiveError(f"{self.path}: no {MANIFEST} in the folder")
+            text = mpath.read_text(encoding="utf-8")
+            self._prefix = PurePosixPath("")
+            meta = self.path / ARCHIVE_META
+            self.settings = json.loads(meta.read_text()) if meta.exists() else None
+        elif self._looks_like(self.path) == "zip":
+            self._kind = "zip"
+            self._zip = zipfile.ZipFile(self.path)
+            names = self._zip.namelist()
+            self._prefix = self._find_prefix(names)
+            text = self._zip.read(str(self._prefix / MANIFEST)).decode("utf-8")
+            meta = str(self._prefix / ARCHIVE_META)
+            self.settings = json.loads(self._zip.read(meta)) if meta in names else None
+        elif self._looks_like(self.path) == "tar":
+            self._kind = "tar"
+            self._tar = tarfile.open(self.path)
+            names = self._tar.getnames()
+            self._prefix = self._find_prefix(names)
+            text = self._tar.extractfile(str(self._prefix / MANIFEST)).read().decode("utf-8")
+            meta = str(self._prefix / ARCHIVE_META)
+            self.settings = json.loads(self._tar.extractfile(meta).read()) if meta in names else None
+        else:
+            raise ArchiveError(f"{self.path}: not an archive folder, .zip or .tar file")
+        where = f"{self.path}:{self._prefix / MANIFEST}" if self._kind != "dir" else str(self.path / MANIFEST)
+        self.manifest = list(latest(_parse_manifest(text, where)).values())
+
+    @staticmethod
+    def _looks_like(path: Path) -> str | None:
+        """'zip' / 'tar' by suffix, else by content (a tar of .npz files can contain a zip
+        end-of-directory record, so tar is tried first when sniffing)."""
+        if not path.is_file():
+            return None
+        name = path.name.lower()
+        if name.endswith(".zip"):
+            return "zip"
+        if name.endswith((".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tar.xz")):
+            return "tar"
+        if tarfile.is_tarfile(path):
+            return "tar"
+        if zipfile.is_zipfile(path):
+            return "zip"
+        return None
+
+    def _find_prefix(self, names) -> PurePosixPath:
+        cands = [PurePosixPath(n) for n in names if PurePosixPath(n).name == MANIFEST]
+        if not cands:
+            raise ArchiveError(f"{self.path}: no {MANIFEST} inside")
+        return min(cands, key=lambda p: len(p.parts)).parent
+
+    @property
+    def ok(self) -> list[dict[str, Any]]:
+        return [e for e in self.manifest if e["status"] == "ok"]
+
+    def __len__(self) -> int:
+        return len(self.ok)
+
+    def names(self) -> list[str]:
+        return [e["name"] for e in self.ok]
+
+    def _read(self, rel: str) -> bytes:
+        if self._kind == "dir":
+            return (self.path / rel).read_bytes()
+        member = str(self._prefix / rel)
+        if self._kind == "zip":
+            return self._zip.read(member)
+        f = self._tar.extractfile(member)
+        if f is None:
+            raise ArchiveError(f"{self.path}: member {member!r} is not a file")
+        return f.read()
+
+    def load(self, name: str, verify: bool = False) -> Clip:
+        """The clip called ``name``; ``verify`` checks the manifest's sha256 first."""
+        entry = next((e for e in self.manifest if e["name"] == name), None)
+        if entry is None or entry["status"] != "ok":
+            raise KeyError(f"{self.path}: no written clip named {name!r}")
+        return self._load(entry, verify)
+
+    def _load(self, entry, verify):
+        where = f"{self.path}:{entry['file']}"
+        try:
+            data = self._read(entry["file"])
+        except (KeyError, FileNotFoundError):
+            raise ArchiveError(f"{where}: listed in the manifest but missing") from None
+        if verify and entry.get("sha256") and _sha256(data) != entry["sha256"]:
+            raise ArchiveError(f"{where}: sha256 does not match the manifest")
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                arrays = {k: npz[k] for k in npz.files}
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+            raise ClipFormatError(f"{where}: not a readable .npz file: {e}") from None
+        return clip_from_arrays(arrays, where)
+
+    def __iter__(self) -> Iterator[Clip]:
+        for e in self.ok:
+            yield self._load(e, False)
+
+    def iter_clips(self, verify: bool = False) -> Iterator[Clip]:
+        for e in self.ok:
+            yield self._load(e, verify)
+
+    def close(self) -> None:
+        if self._kind == "zip":
+            self._zip.close()
+        elif self._kind == "tar":
+            self._tar.close()
+
+    def __enter__(self) -> Archive:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def iter_clips(path: str | os.PathLike, verify: bool = False) -> Iterator[Clip]:
+    """Iterate the written clips of an archive (folder, .zip or .tar) in manifest order."""
+    with Archive(path) as a:
+        yield from a.iter_clips(verify)
+
+
+def read_manifest(path: str | os.PathLike) -> list[dict[str, Any]]:
+    """The latest manifest line of every clip of an archive."""
+    with Archive(path) as a:
+        return list(a.manifest)
+
+
+__all__ = [
+    "ARCHIVE_META",
+    "MANIFEST",
+    "Archive",
+    "ArchiveError",
+    "ArchiveWriter",
+    "iter_clips",
+    "npz_bytes",
+    "read_manifest",
+]
