@@ -1480,12 +1480,11 @@ def seg_locomotion(plan: Plan, run: bool = False, backward: bool = False):
         speeds.append(vk)
     mid = plan.mid()
     P_prev = np.array(mid)
-    times = []  # (lift, land) per step
     t_lift = t0 + float(rng.uniform(0.3, 0.5))
     prev_land = None
     heel = -float(rng.uniform(0.12, 0.22)) * (0.6 if run else 1.0)
     toe_off = float(rng.uniform(0.25, 0.4)) if not run else float(rng.uniform(0.35, 0.55))
-    back_land = float(rng.uniform(0.15, 0.3))
+    back_land = float(rng.uniform(0.12, 0.22))
     back_lift = -float(rng.uniform(0.08, 0.18))
     psi = path_dir0
     steps = []
@@ -1525,7 +1524,7 @@ def seg_locomotion(plan: Plan, run: bool = False, backward: bool = False):
         is_run = sd["run"]
         if backward:
             phi_off, r_off = back_lift, min(0.3 * stance_len, 0.2)
-            phi_on, r_on = back_land, 0.1
+            phi_on, r_on = back_land, min(0.22, 0.5 * sd["Tc"])
             a_off, a_on = 0.25, 0.75
         else:
             phi_off = toe_off * (0.5 if i == 0 else 1.0)
@@ -1648,7 +1647,7 @@ def _moved_feet(feet, mid, heading, dx, dy, dpsi):
 def seg_jump(plan: Plan):
     """Jumps on both feet: vertical, broad, lateral, turning; single or repeated hops. The
     pelvis follows a g-parabola in flight."""
-    ch, rng, st = plan.ch, plan.rng, plan.style
+    ch, rng = plan.ch, plan.rng
     s = ch.scale
     t0 = plan.t
     feet = plan.feet()
@@ -1822,7 +1821,6 @@ def seg_lunge(plan: Plan):
     t_lift = t0 + float(rng.uniform(0.35, 0.55))
     T_sw = float(rng.uniform(0.4, 0.55))
     t_land = t_lift + T_sw
-    rear = A if reverse else B
     if reverse:
         sA = plan.step(A, G_new, t_lift, t_land, phi_off=0.1, r_off=0.15, phi_on=0.6, r_on=0.1,
                        swing={"mode": "world", "clear": 0.06 * s})
@@ -1851,7 +1849,6 @@ def seg_lunge(plan: Plan):
     else:
         plan.step(A, GA, t_back, t_back + T_sw2, phi_off=0.25, r_off=0.15, phi_on=0.2, r_on=0.1,
                   swing={"mode": "world", "clear": 0.05 * s})
-        plan.stance(B).phi += [(t_back + T_sw2 - 0.05, 0.0)] if False else []
         sB = plan.stance(B)
         sB.phi += [(t_back + T_sw2 + 0.1, 0.0)]
     t_end = t_back + T_sw2 + float(rng.uniform(0.4, 0.7))
@@ -2437,6 +2434,9 @@ def _feedforward(ch: Character, mj, q, qd, qdd, planted, mu):
     """Inverse dynamics of the reference (T frames): hinge feed-forward torques (T, nv) and the
     root wrench the planted contacts cannot supply (T, 6)."""
     T = len(q)
+    mj = copy.deepcopy(mj)  # rigid-body inverse dynamics only: no contacts, limits, damping
+    mj.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+    mj.dof_damping[:] = 0.0
     d = mujoco.MjData(mj)
     ff = np.zeros((T, mj.nv))
     res = np.zeros((T, 6))

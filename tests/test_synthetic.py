@@ -1,0 +1,471 @@
+"""Tests of the synthetic data generator, the clip archive and ``jmocap data synth``.
+
+References are independent of the code under test: MuJoCo C (``mj_kinematics``, joint ranges
+read from ``MjModel.jnt_range``), a homogeneous ``K [R t]`` numpy pinhole, hand-made
+trajectories for the contact rule, ``numpy.polyfit`` for the flight parabola.
+
+Tolerances: planted feet < 1 mm (the generator's leg IK converges to 1e-7 m; 1 mm is what the
+task asks); floor >= -1e-6 m (IK tolerance); projections 1e-3 px (float32 storage of 3D
+points ~1e-7 m at <= 8 m gives ~1e-4 px); flight curvature within 5 % of -g/2 (exact by
+construction, the 5 % is the task's bound); standing GRF within 10 % of the weight (soft
+contacts and the tracking controller's small root residual).
+"""
+
+from __future__ import annotations
+
+import json
+import tarfile
+import zipfile
+
+import mujoco
+import numpy as np
+import pytest
+
+from jmocap.cli import main
+from jmocap.data import synthetic as S
+from jmocap.data.archive import MANIFEST, Archive, ArchiveError, ArchiveWriter, iter_clips
+from jmocap.data.clip import load_clip
+from jmocap.layouts import CONTACT_SITES, get_layout
+
+FAST = dict(frames=45, max_attempts=12)
+
+
+@pytest.fixture(scope="module")
+def walk_clip():
+    return S.generate_clip(11, 0, S.SynthConfig(kinds=("walk",), **FAST))
+
+
+@pytest.fixture(scope="module")
+def mixed_clips():
+    cfg = S.SynthConfig(kinds=("dance", "squat", "kick", "lunge", "stand"), **FAST)
+    return [S.generate_clip(5, i, cfg) for i in range(3)]
+
+
+@pytest.fixture(scope="module")
+def jump_clip():
+    # long enough to contain a whole flight
+    return S.generate_clip(2, 0, S.SynthConfig(kinds=("jump",), frames=150))
+
+
+def _model_for(clip):
+    return S.character(round(clip.height_m, 2))
+
+
+def _sites(mj, q, names):
+    """World positions (T, n, 3) of named sites by MuJoCo C kinematics."""
+    d = mujoco.MjData(mj)
+    ids = [mj.site(n).id for n in names]
+    out = np.zeros((len(q), len(ids), 3))
+    for t, qt in enumerate(q):
+        d.qpos[:] = qt
+        mujoco.mj_kinematics(mj, d)
+        out[t] = d.site_xpos[ids]
+    return out
+
+
+def _planted_runs(clip):
+    return {k: [tuple(r) for r in v] for k, v in clip.meta["planned_contacts"].items()}
+
+
+# --- determinism --------------------------------------------------------------------------
+
+
+def test_same_seed_same_arrays():
+    cfg = S.SynthConfig(frames=30, kinds=("walk", "dance"))
+    a = S.generate_clip(7, 3, cfg)
+    b = S.generate_clip(7, 3, cfg)
+    for key in ("keypoints", "gt_q", "gt_qd", "gt_keypoints3d", "gt_contacts", "intrinsics", "extrinsics"):
+        x, y = getattr(a, key), getattr(b, key)
+        assert x.dtype == y.dtype and x.shape == y.shape
+        assert x.tobytes() == y.tobytes(), key
+    assert a.meta == b.meta
+    c = S.generate_clip(8, 3, cfg)
+    assert c.gt_q.shape != a.gt_q.shape or not np.array_equal(c.gt_q, a.gt_q)
+
+
+# --- kinematic cleanliness ---------------------------------------------------------------
+
+
+def test_planted_feet_do_not_move(walk_clip, mixed_clips):
+    for clip in [walk_clip, *mixed_clips]:
+        mj = _model_for(clip).mj
+        pos = _sites(mj, clip.gt_q.astype(np.float64), CONTACT_SITES)
+        n_runs = 0
+        for i, name in enumerate(CONTACT_SITES):
+            for a, b in _planted_runs(clip)[name]:
+                drift = np.max(np.linalg.norm(pos[a:b, i] - pos[a, i], axis=-1))
+                assert drift < 1e-3, (clip.name, name, a, b, drift)
+                assert np.all(np.abs(pos[a:b, i, 2]) < 1e-4)  # and they are on the floor
+                n_runs += 1
+        assert n_runs > 0
+
+
+def test_contact_labels_follow_rempe_rule(walk_clip, mixed_clips):
+    for clip in [walk_clip, *mixed_clips]:
+        mj = _model_for(clip).mj
+        pos = _sites(mj, clip.gt_q.astype(np.float64), CONTACT_SITES)
+        c = clip.gt_contacts.astype(bool)
+        step = np.linalg.norm(np.diff(pos, axis=0), axis=-1)
+        # labelled in contact => moved < 2 cm since the previous frame and < 5 cm high
+        assert np.all(step[c[1:]] < 0.02)
+        assert np.all(pos[..., 2][c] < 0.05)
+        # and the converse (the rule is an equivalence)
+        expect = (step < 0.02) & (pos[1:, :, 2] < 0.05)
+        assert np.array_equal(c[1:], expect)
+        assert np.array_equal(c[0], (step[0] < 0.02) & (pos[0, :, 2] < 0.05))
+
+
+def test_contact_rule_hand_computed():
+    p = np.zeros((4, 4, 3))
+    p[:, 0, 2] = [0.0, 0.0, 0.0, 0.0]  # still on the floor: contact throughout
+    p[:, 1, 0] = [0.0, 0.03, 0.06, 0.07]  # sliding 3 cm/frame, then 1 cm
+    p[:, 2, 2] = [0.06, 0.06, 0.06, 0.06]  # still but 6 cm high
+    p[:, 3, 2] = [0.0, 0.01, 0.049, 0.2]  # lifting
+    c = S.contact_labels(p)
+    assert c[:, 0].tolist() == [1, 1, 1, 1]
+    assert c[:, 1].tolist() == [0, 0, 0, 1]  # frame 0 takes frame 1's displacement
+    assert c[:, 2].tolist() == [0, 0, 0, 0]
+    assert c[:, 3].tolist() == [1, 1, 0, 0]
+
+
+def test_no_floor_penetration_and_limits(walk_clip, mixed_clips, jump_clip):
+    for clip in [walk_clip, *mixed_clips, jump_clip]:
+        mj = _model_for(clip).mj
+        names = [mj.site(i).name for i in range(mj.nsite)
+                 if mj.site(i).name.startswith(("kp_", "contact_"))]
+        pos = _sites(mj, clip.gt_q.astype(np.float64), names)
+        assert pos[..., 2].min() >= -1e-6, clip.name
+        q = clip.gt_q.astype(np.float64)
+        for j in range(mj.njnt):
+            if mj.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE and mj.jnt_limited[j]:
+                a = mj.jnt_qposadr[j]
+                lo, hi = mj.jnt_range[j]
+                # float32 storage: 1e-6 rad
+                assert q[:, a].min() >= lo - 1e-6 and q[:, a].max() <= hi + 1e-6, mj.joint(j).name
+
+
+def test_keypoints3d_are_the_layout_sites(walk_clip):
+    mj = _model_for(walk_clip).mj
+    lay = get_layout(walk_clip.layout)
+    pos = _sites(mj, walk_clip.gt_q.astype(np.float64), lay.sites)
+    np.testing.assert_allclose(walk_clip.gt_keypoints3d, pos, atol=1e-5)
+
+
+def test_velocities_match_finite_differences(walk_clip):
+    mj = _model_for(walk_clip).mj
+    q = walk_clip.gt_q.astype(np.float64)
+    qd = walk_clip.gt_qd.astype(np.float64)
+    fps = walk_clip.fps
+    # integrating the central-difference velocity over two frames from t-1 lands on t+1
+    for t in range(1, len(q) - 1, 7):
+        x = q[t - 1].copy()
+        mujoco.mj_integratePos(mj, x, qd[t], 2.0 / fps)
+        np.testing.assert_allclose(x, q[t + 1], atol=2e-4)
+
+
+def test_leg_fk_matches_mujoco():
+    ch = S.character(1.8)
+    rng = np.random.default_rng(0)
+    q = np.tile(ch.q_stand, (5, 1))
+    q[:, :3] = rng.normal(size=(5, 3))
+    quat = rng.normal(size=(5, 4))
+    q[:, 3:7] = quat / np.linalg.norm(quat, axis=1, keepdims=True)
+    d = mujoco.MjData(ch.mj)
+    jp, jr = np.zeros((3, ch.nv)), np.zeros((3, ch.nv))
+    for f, L in enumerate(ch.legs):
+        q[:, L.ik_qadr] = rng.uniform(ch.mj.jnt_range[ch.mj.dof_jntid[L.ik_dof]][:, 0],
+                                      ch.mj.jnt_range[ch.mj.dof_jntid[L.ik_dof]][:, 1])
+        R, p, J = ch.leg_fk(f, S._quat2mat(q[:, 3:7]), q[:, :3], q[:, L.ik_qadr])
+        for t in range(5):
+            d.qpos[:] = q[t]
+            mujoco.mj_kinematics(ch.mj, d)
+            mujoco.mj_comPos(ch.mj, d)
+            mujoco.mj_jacBody(ch.mj, d, jp, jr, L.ankle_body)
+            np.testing.assert_allclose(p[t], d.xpos[L.ankle_body], atol=1e-12)
+            np.testing.assert_allclose(R[t], d.xmat[L.ankle_body].reshape(3, 3), atol=1e-12)
+            np.testing.assert_allclose(J[t], np.vstack([jp[:, L.ik_dof], jr[:, L.ik_dof]]), atol=1e-12)
+
+
+# --- jumps --------------------------------------------------------------------------------
+
+
+def test_jump_has_ballistic_flight(jump_clip):
+    T = jump_clip.num_frames
+    planted = np.zeros(T, bool)
+    for runs in _planted_runs(jump_clip).values():
+        for a, b in runs:
+            planted[a:b] = True
+    flight = ~planted
+    assert jump_clip.meta["flight_frames"] == int(flight.sum()) > 0
+    runs = S._runs(flight)
+    a, b = max(runs, key=lambda r: r[1] - r[0])
+    assert b - a >= 5
+    # no contact labels during the flight (the feet leave at once, faster than 2 cm/frame)
+    assert not jump_clip.gt_contacts[a + 1 : b].any()
+    t = np.arange(a, b) / jump_clip.fps
+    z = jump_clip.gt_q[a:b, 2].astype(np.float64)
+    coef = np.polyfit(t, z, 2)
+    assert abs(coef[0] - (-9.81 / 2)) < 0.05 * 9.81 / 2
+    # the horizontal root motion is close to uniform during the flight (COM is ballistic)
+    xy = jump_clip.gt_q[a:b, :2].astype(np.float64)
+    acc = np.diff(xy, 2, axis=0) * jump_clip.fps**2
+    assert np.max(np.abs(acc)) < 3.0
+
+
+# --- cameras and 2D keypoints -------------------------------------------------------------
+
+
+def _pinhole(K, E, X):
+    Km = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
+    P = Km @ E[:3, :]
+    Xh = np.concatenate([X, np.ones(X.shape[:-1] + (1,))], axis=-1)
+    x = Xh @ P.T
+    return x[..., :2] / x[..., 2:3]
+
+
+def test_clean_keypoints_are_projections():
+    clip = S.generate_clip(4, 0, S.SynthConfig(frames=30, kinds=("stand",), layout="coco17",
+                                               corruption=S.Corruption.none()))
+    uv = _pinhole(clip.intrinsics, clip.extrinsics, clip.gt_keypoints3d.astype(np.float64))
+    np.testing.assert_allclose(clip.keypoints[..., :2], uv, atol=1e-3, rtol=1e-6)
+    assert np.all(clip.keypoints[..., 2] == 1.0)
+    np.testing.assert_allclose(S.clean_keypoints2d(clip), uv, atol=1e-6)
+    # camera: OpenCV axes, in front, upright, within the configured ranges
+    E = clip.extrinsics
+    cam = -E[:3, :3].T @ E[:3, 3]
+    assert 0.3 <= cam[2] <= 2.0
+    fx = clip.intrinsics[0]
+    assert fx <= 2000.0
+    assert tuple(clip.image_size) in S.CameraConfig().image_sizes
+    Xc = clip.gt_keypoints3d.astype(np.float64) @ E[:3, :3].T + E[:3, 3]
+    assert Xc[..., 2].min() > 1.0
+    head, feet = clip.keypoints[:, 0, 1], clip.keypoints[:, 15:17, 1].mean(axis=1)
+    assert np.all(head < feet)  # image y grows downwards: head above the ankles
+
+
+def test_look_at_matches_camera_module():
+    from jmocap.camera import Camera
+
+    eye, target = np.array([4.0, -2.0, 1.3]), np.array([0.2, 0.5, 0.9])
+    E = S.look_at_extrinsics(eye, target)
+    ref = np.asarray(Camera.look_at(eye, target, dtype=np.float64).extrinsics)
+    np.testing.assert_allclose(E, ref, atol=1e-6)
+
+
+def _corrupted(corruption, T=400, seed=0):
+    rng = np.random.default_rng(seed)
+    lay = get_layout("body25")
+    uv = np.stack([rng.uniform(400, 600, (T, lay.num_joints)),
+                   np.linspace(100, 900, lay.num_joints)[None].repeat(T, 0)], axis=-1)
+    kp, stats = S.corrupt_keypoints(rng, uv, lay, (1000, 1000), corruption)
+    return uv, kp, stats
+
+
+def test_corruption_drop_fraction():
+    for p in (0.05, 0.2):
+        c = S.Corruption(noise_px=0, noise_rel=0, outlier_prob=0, swap_prob=0, drop_prob=p,
+                         drop_outside=False)
+        uv, kp, stats = _corrupted(c)
+        frac = float(np.mean(kp[..., 2] == 0))
+        assert abs(frac - p) < 0.35 * p + 0.01, (p, frac)
+        ok = kp[..., 2] > 0
+        np.testing.assert_allclose(kp[..., :2][ok], uv[ok], atol=1e-3)  # no noise
+        assert np.all(kp[..., :2][~ok] == 0)
+
+
+def test_corruption_noise_outliers_swaps_confidence():
+    c = S.Corruption(noise_px=3.0, noise_rel=0.0, joint_scale=1.0, noise_corr=0.0, outlier_prob=0,
+                     drop_prob=0, swap_prob=0, drop_outside=False)
+    uv, kp, _ = _corrupted(c)
+    err = kp[..., :2] - uv
+    assert abs(err.std() - 3.0) < 0.3
+    assert np.all((kp[..., 2] > 0.4) & (kp[..., 2] <= 1.0))
+    # outliers: large jumps, lower confidence
+    c = S.Corruption(noise_px=0, noise_rel=0, outlier_prob=0.05, drop_prob=0, swap_prob=0,
+                     drop_outside=False)
+    uv, kp, stats = _corrupted(c)
+    moved = np.linalg.norm(kp[..., :2] - uv, axis=-1) > 1.0
+    assert abs(moved.mean() - 0.05) < 0.02
+    assert kp[..., 2][moved].max() <= 0.5 < kp[..., 2][~moved].min()
+    # swaps exchange left/right joints
+    c = S.Corruption(noise_px=0, noise_rel=0, outlier_prob=0, drop_prob=0, swap_prob=0.05,
+                     drop_outside=False)
+    uv, kp, stats = _corrupted(c)
+    assert stats["swap_events"] > 0
+    lay = get_layout("body25")
+    swapped = 0
+    for a, b in lay.flip_pairs:
+        s = np.all(np.abs(kp[:, a, :2] - uv[:, b]) < 1e-3, axis=-1) & np.any(np.abs(uv[:, a] - uv[:, b]) > 1, axis=-1)
+        swapped += int(s.sum())
+    assert swapped > 0
+    # none: exact
+    uv, kp, _ = _corrupted(S.Corruption.none())
+    np.testing.assert_allclose(kp[..., :2], uv, atol=1e-3)
+    assert np.all(kp[..., 2] == 1)
+
+
+# --- physics variant ------------------------------------------------------------------------
+
+
+def test_physics_standing_grf_and_residual():
+    clip = S.generate_clip(3, 0, S.SynthConfig(frames=45, kinds=("stand",), physics=True))
+    ch = _model_for(clip)
+    weight = ch.mass * 9.81
+    assert clip.gt_tau is not None and clip.gt_tau.shape == (45, ch.nv)
+    assert clip.gt_grf.shape == (45, 4, 3)
+    fz = clip.gt_grf[..., 2].sum(axis=1)
+    assert abs(fz.mean() / weight - 1.0) < 0.10
+    assert np.all(clip.gt_grf[..., 2] >= -1e-6)  # the floor only pushes
+    # upright, and residual reported (small when standing)
+    R = S._quat2mat(clip.gt_q[:, 3:7].astype(np.float64))
+    assert np.all(R[:, 2, 2] > np.cos(np.radians(30)))
+    p = clip.meta["physics"]
+    for k in ("residual_force_mean", "residual_force_max", "residual_torque_mean"):
+        assert k in p
+    assert p["residual_force_mean"] < 0.05
+    res = np.linalg.norm(clip.gt_tau[:, :3], axis=1) / weight
+    assert abs(res.mean() - p["residual_force_mean"]) < 1e-3
+    # velocities are the simulation's (consistent with the positions)
+    mj = ch.mj
+    x = clip.gt_q[0].astype(np.float64).copy()
+    mujoco.mj_integratePos(mj, x, clip.gt_qd[0].astype(np.float64), 1.0 / clip.fps)
+    np.testing.assert_allclose(x[:3], clip.gt_q[1, :3], atol=2e-3)
+
+
+@pytest.mark.slow
+def test_physics_walking_stays_upright():
+    clip = S.generate_clip(1, 0, S.SynthConfig(frames=150, kinds=("walk",), physics=True))
+    R = S._quat2mat(clip.gt_q[:, 3:7].astype(np.float64))
+    assert np.all(R[:, 2, 2] > np.cos(np.radians(30)))
+    assert clip.meta["physics"]["residual_force_mean"] < 0.1
+
+
+# --- archive --------------------------------------------------------------------------------
+
+
+def _assert_same_clip(a, b):
+    assert a.name == b.name and a.layout == b.layout and a.fps == b.fps
+    for key in ("keypoints", "gt_q", "gt_qd", "gt_keypoints3d", "gt_contacts", "intrinsics",
+                "image_size", "extrinsics"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
+    assert a.meta == b.meta
+
+
+def test_archive_round_trip(tmp_path, mixed_clips):
+    root = tmp_path / "arch"
+    with ArchiveWriter(root, {"seed": 5}) as w:
+        for i, c in enumerate(mixed_clips):
+            w.add(c, index=i)
+        w.add_failure("synth_000099", "no valid motion", index=99)
+    lines = [json.loads(x) for x in (root / MANIFEST).read_text().splitlines()]
+    assert [x["name"] for x in lines] == [c.name for c in mixed_clips] + ["synth_000099"]
+    for x, c in zip(lines, mixed_clips, strict=False):
+        assert x["status"] == "ok" and x["file"] == f"{c.name}.npz"
+        assert x["frames"] == c.num_frames and x["fps"] == c.fps and x["layout"] == c.layout
+        assert x["kind"] == c.meta["kind"] and x["height_m"] == c.height_m
+        import hashlib
+
+        assert x["sha256"] == hashlib.sha256((root / x["file"]).read_bytes()).hexdigest()
+        _assert_same_clip(load_clip(root / x["file"]), c)
+    assert lines[-1]["status"] == "failed" and lines[-1]["error"] == "no valid motion"
+    a = Archive(root)
+    assert len(a) == len(mixed_clips) and a.settings == {"seed": 5}
+    for c, r in zip(mixed_clips, a, strict=True):
+        _assert_same_clip(r, c)
+    # zip and tar.gz of the folder read the same (with a top-level folder inside)
+    with zipfile.ZipFile(tmp_path / "a.zip", "w") as z:
+        for f in root.iterdir():
+            z.write(f, arcname=f"arch/{f.name}")
+    with tarfile.open(tmp_path / "a.tar.gz", "w:gz") as t:
+        t.add(root, arcname="arch")
+    for path in (tmp_path / "a.zip", tmp_path / "a.tar.gz"):
+        got = list(iter_clips(path, verify=True))
+        assert [c.name for c in got] == [c.name for c in mixed_clips]
+        _assert_same_clip(got[0], mixed_clips[0])
+
+
+def test_archive_files_are_deterministic(tmp_path, mixed_clips):
+    for sub in ("a", "b"):
+        with ArchiveWriter(tmp_path / sub) as w:
+            w.add(mixed_clips[0])
+    assert (tmp_path / "a" / "synth_000000.npz").read_bytes() == (tmp_path / "b" / "synth_000000.npz").read_bytes()
+
+
+def test_archive_resume_after_interruption(tmp_path, mixed_clips):
+    root = tmp_path / "arch"
+    with ArchiveWriter(root, {"seed": 5}) as w:
+        w.add(mixed_clips[0])
+    # simulate a crash: a half-written manifest line and a stray temp file
+    with open(root / MANIFEST, "a") as f:
+        f.write('{"name": "synth_000001", "file": "synth_0')
+    (root / ".synth_000001.npz.123.tmp").write_bytes(b"partial")
+    a = Archive(root)  # the reader ignores the truncated line
+    assert a.names() == [mixed_clips[0].name]
+    with ArchiveWriter(root, {"seed": 5}) as w:
+        assert w.has(mixed_clips[0].name, verify=True)
+        assert not w.has(mixed_clips[1].name)
+        w.add(mixed_clips[1])
+    text = (root / MANIFEST).read_text()
+    assert text.endswith("\n") and len(text.splitlines()) == 2
+    assert Archive(root).names() == [c.name for c in mixed_clips[:2]]
+    # a missing file makes has() false again (it will be rewritten)
+    (root / f"{mixed_clips[1].name}.npz").unlink()
+    with ArchiveWriter(root, {"seed": 5}) as w:
+        assert not w.has(mixed_clips[1].name)
+    with pytest.raises(ArchiveError, match="different settings"):
+        ArchiveWriter(root, {"seed": 6})
+
+
+def test_archive_errors(tmp_path):
+    with pytest.raises(ArchiveError, match="no manifest"):
+        Archive(tmp_path)
+    (tmp_path / MANIFEST).write_text('{"name": "a", "status": "ok"}\nnot json\n{"name": "b", "status": "ok"}\n')
+    with pytest.raises(ArchiveError, match="line 2"):
+        Archive(tmp_path)
+
+
+# --- CLI ------------------------------------------------------------------------------------
+
+
+def test_cli_data_synth(tmp_path, capsys):
+    out = tmp_path / "synth"
+    argv = ["data", "synth", "--out", str(out), "--clips", "2", "--seed", "9", "--frames-per-clip",
+            "30", "--kinds", "stand,dance", "--layout", "h36m17", "--quiet"]
+    assert main(argv) == 0
+    msg = capsys.readouterr().out
+    assert "2 clips written" in msg and "frames/s" in msg
+    lines = [json.loads(x) for x in (out / MANIFEST).read_text().splitlines()]
+    assert [x["name"] for x in lines] == ["synth_000000", "synth_000001"]
+    assert all(x["frames"] == 30 and x["layout"] == "h36m17" and x["seed"] == 9 for x in lines)
+    clip = load_clip(out / lines[0]["file"])
+    assert clip.keypoints.shape == (30, 17, 3)
+    # resuming does nothing more; a bigger --clips adds only the new ones
+    assert main(argv) == 0
+    msg = capsys.readouterr().out
+    assert "0 clips written" in msg and "2 already there" in msg
+    argv3 = list(argv)
+    argv3[argv3.index("2")] = "3"
+    assert main(argv3) == 0
+    assert len((out / MANIFEST).read_text().splitlines()) == 3
+    # same seed elsewhere: byte-identical files
+    out2 = tmp_path / "again"
+    argv2 = list(argv)
+    argv2[argv2.index(str(out))] = str(out2)
+    assert main(argv2) == 0
+    l2 = [json.loads(x) for x in (out2 / MANIFEST).read_text().splitlines()]
+    assert [x["sha256"] for x in l2] == [x["sha256"] for x in lines]
+    # info
+    assert main(["data", "info", str(out)]) == 0
+    assert "3 clips" in capsys.readouterr().out
+    # changing settings on an existing archive is refused
+    with pytest.raises(ArchiveError):
+        main(argv[:-1] + ["--fps", "25", "--quiet"])
+
+
+def test_cli_bad_arguments(capsys):
+    with pytest.raises(SystemExit):
+        main(["data", "synth", "--out", "x", "--clips", "1", "--frames-per-clip", "9:3"])
+    with pytest.raises(SystemExit):
+        main(["data", "synth", "--out", "x", "--clips", "1", "--kinds", "fly"])
+    with pytest.raises(SystemExit):
+        main([])
