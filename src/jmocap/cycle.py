@@ -183,9 +183,13 @@ def target_pose(
     *,
     train: bool = False,
     rngs: dict | None = None,
-):
-    """TPNet over a whole clip (each frame sees its causal window). Returns a :class:`TargetPose`
-    (and, with ``train=True``, the updated batch-norm statistics)."""
+    detach_pose: bool = False,
+) -> TargetPose:
+    """TPNet over a whole clip (each frame sees its causal window).
+
+    ``train`` turns dropout on (``rngs={"dropout": key}``); ``detach_pose`` stops C_T's
+    gradient from reaching C_P (separate pre-training of the two, Sec. 3.5).
+    """
     layout = get_layout(config.layout)
     n_h = model.topo.hinge_qadr.size
     tp = TPNet(n_hinges=n_h, config=config.nets)
@@ -194,11 +198,9 @@ def target_pose(
     k_c = canonicalise(kp, inputs.intrinsics)  # (T, J, 3)
     W = config.nets.window
     variables = params["tpnet"]
-    mutable = ["batch_stats"] if train else False
-    kw = dict(train=train, rngs=rngs or {}, mutable=mutable)
+    kw = dict(train=train, rngs=rngs or {})
 
-    out = tp.apply(variables, causal_windows(k_rr, W), method=TPNet.pose, **kw)
-    (rot6d, raw, logits), upd1 = out if train else (out, None)
+    rot6d, raw, logits = tp.apply(variables, causal_windows(k_rr, W), method=TPNet.pose, **kw)
     rot_cam = rot6d_to_mat(rot6d)
     hinges = hinge_angles(raw)
     dtype = hinges.dtype
@@ -206,17 +208,17 @@ def target_pose(
     q_rr = jnp.zeros((T, model.nq), dtype)
     q_rr = q_rr.at[:, 3:7].set(mat_to_quat(rot_cam)).at[:, model.topo.hinge_qadr].set(hinges)
     p_rr = jax.vmap(lambda q: P.keypoints(model, q, layout))(q_rr)  # camera frame, root at 0
+    # C_T's view of the pose; pre-training keeps C_T's loss out of C_P (paper Sec. 3.5)
+    p_ct = jax.lax.stop_gradient(p_rr) if detach_pose else p_rr
 
     if config.canonicalise:
-        t_ls = jax.vmap(least_squares_translation)(p_rr, k_c)
+        t_ls = jax.vmap(least_squares_translation)(p_ct, k_c)
         obs = k_c
     else:
         t_ls = jnp.broadcast_to(jnp.array([0.0, 0.0, 4.0], dtype), (T, 3))
         obs = k_rr
-    feats = jnp.concatenate([obs.reshape(T, -1), p_rr.reshape(T, -1), t_ls], -1)
-    variables = {**variables, **upd1} if train else variables
-    out = tp.apply(variables, causal_windows(feats, W), method=TPNet.translation, **kw)
-    dt_cam, upd2 = out if train else (out, None)
+    feats = jnp.concatenate([obs.reshape(T, -1), p_ct.reshape(T, -1), t_ls], -1)
+    dt_cam = tp.apply(variables, causal_windows(feats, W), method=TPNet.translation, **kw)
     trans_cam = t_ls + dt_cam
 
     # camera frame -> world: X_c = R X_w + t
@@ -225,10 +227,7 @@ def target_pose(
     rot_w = jnp.matmul(R.T, rot_cam)  # R^T R_cam
     pos_w = (trans_cam - t) @ R  # R^T (t_cam - t), row-vector form
     q_hat = q_rr.at[:, 0:3].set(pos_w).at[:, 3:7].set(mat_to_quat(rot_w))
-    result = TargetPose(q_hat, logits, rot_cam, trans_cam, t_ls, p_rr)
-    if train:
-        return result, {"batch_stats": {**upd1["batch_stats"], **upd2["batch_stats"]}}
-    return result
+    return TargetPose(q_hat, logits, rot_cam, trans_cam, t_ls, p_rr)
 
 
 def least_squares_translation(p_rr: Array, k_c: Array, prior_depth: float = 4.0, prior_weight: float = 1e-4) -> Array:

@@ -1,9 +1,12 @@
 """The networks of physionical motion capture (paper Sec. 3.3-3.4 and Appendix A), in flax.
 
 * :class:`TemporalConvNet` — the temporal backbone of TPNet: an embedding block (replication
-  padding 1, Conv1D kernel 3, batch norm, ReLU, dropout) and four residual blocks (replication
-  padding 4, Conv1D kernel 5 dilation 2, batch norm, ReLU, dropout, skip), then a convolution over
-  the whole causal window to one feature vector and a linear head.
+  padding 1, Conv1D kernel 3, normalisation, ReLU, dropout) and four residual blocks (replication
+  padding 4, Conv1D kernel 5 dilation 2, normalisation, ReLU, dropout, skip), then a convolution
+  over the whole causal window to one feature vector and a linear head. jmocap normalises with
+  layer norm where the paper uses batch norm: every network stays a pure function of
+  ``(params, input)`` with no running statistics, so vmapping over clips, streaming and
+  training all see the same function.
 * :class:`TPNet` — C_P (three replicated backbones: root orientation, joint angles, contact
   probabilities) on root-relative keypoints K_rr, and C_T (root translation) on the
   root-relative 3D joints P_rr of C_P's pose and the canonical keypoints K_c.
@@ -12,7 +15,7 @@
 
 Widths are configurable (:class:`NetConfig`); the defaults are narrower than the paper's 1024 so
 that training fits a 2-core CPU (docs/method.md). Everything is a pure function of
-``(variables, inputs)``; batch-norm statistics live in the ``batch_stats`` collection.
+``(variables, inputs)``.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ import jax.numpy as jnp
 @dataclass(frozen=True)
 class NetConfig:
     window: int = 10  # causal window of TPNet (frames)
-    tp_width: int = 256  # channels of the temporal backbones (paper: 1024)
+    tp_width: int = 128  # channels of the temporal backbones (paper: 1024)
     tp_blocks: int = 4
     dropout: float = 0.25
     dyn_width: int = 256  # DyNet hidden width (paper: 1024)
@@ -53,7 +56,7 @@ class TemporalConvNet(nn.Module):
         W = x.shape[-2]
 
         def bn():
-            return nn.BatchNorm(use_running_average=not train, momentum=0.9)
+            return nn.LayerNorm()
 
         h = nn.Conv(self.width, (3,), padding="VALID", use_bias=False)(_replicate_pad(x, 1))
         h = nn.Dropout(self.dropout, deterministic=not train)(nn.relu(bn()(h)))

@@ -71,10 +71,13 @@ class ContactPoints:
     bodies: tuple[int, ...]
     offsets: tuple[tuple[float, float, float], ...]
     names: tuple[str, ...] = ()
+    # when the points are model sites: their ids, and the offsets are read from the (traced)
+    # model at call time, so one ContactPoints serves every scaled copy of a character
+    site_ids: tuple[int, ...] = ()
 
     def __post_init__(self):
-        if len(self.bodies) != len(self.offsets):
-            raise ValueError("ContactPoints: one offset per body is required")
+        if len(self.bodies) != len(self.site_ids or self.offsets):
+            raise ValueError("ContactPoints: one offset (or site) per body is required")
         if not 0 < len(self.bodies) <= MAX_CONTACT_POINTS:
             raise ValueError(f"ContactPoints: 1 to {MAX_CONTACT_POINTS} points, got {len(self.bodies)}")
 
@@ -83,11 +86,12 @@ class ContactPoints:
 
     @staticmethod
     def from_sites(model: Model, site_ids) -> ContactPoints:
-        ids = [int(s) for s in site_ids]
+        ids = tuple(int(s) for s in site_ids)
         return ContactPoints(
             bodies=tuple(model.topo.site_body[s] for s in ids),
-            offsets=tuple(tuple(float(x) for x in model.mj.site_pos[s]) for s in ids),
+            offsets=(),
             names=tuple(model.topo.site_names[s] for s in ids),
+            site_ids=ids,
         )
 
 
@@ -104,7 +108,8 @@ def foot_corner_points(
     """PIP's contact points: four corners of a (2 half_size)-wide square per foot body.
 
     The square lies in the body's horizontal (x, y) plane at the height of the body's lowest
-    contact site (the sole), centred below the body origin.
+    contact site (the sole), centred below the body origin. The offsets are constants of this
+    ``model``: build the points again for a rescaled character.
     """
     sole = {}
     for s in model.topo.contact_sites:
@@ -136,7 +141,10 @@ def contact_points(
     points = default_contact_points(model) if points is None else points
     dtype = kin.xpos.dtype
     bodies = np.asarray(points.bodies, int)
-    offsets = _c(np.asarray(points.offsets, np.float64), dtype)
+    if points.site_ids:
+        offsets = _c(model.site_pos, dtype)[np.asarray(points.site_ids)]
+    else:
+        offsets = _c(np.asarray(points.offsets, np.float64), dtype)
     pos = kin.xpos[bodies] + jnp.einsum("cij,cj->ci", kin.xmat[bodies], offsets)
     n = _unit(normal, dtype)
     return pos, pos @ n - floor_height
