@@ -2533,51 +2533,59 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, planted: np.
     nonfoot = 0
     z_fall = cfg.fall_height * ch.z_stand
     cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg))
-    qa = np.arange(7, mj.nq)
+    foot_geom = np.array([mj.geom_bodyid[g] in foot_bodies for g in range(mj.ngeom)])
+    is_floor = np.zeros(mj.ngeom, bool)
+    is_floor[list(floor)] = True
+    e_rot = np.zeros(3)
+    quat = np.zeros(4)
+    qfrc = np.zeros(nv)
     for k in range(T):
         q_out[k], qd_out[k] = d.qpos, d.qvel
         k1 = min(k + 1, T - 1)
-        R_a, R_b = _quat2mat(q_ref[k, 3:7]), _quat2mat(q_ref[k1, 3:7])
+        qa_ref, qb_ref = q_ref[k], q_ref[k1]
+        if np.dot(qa_ref[3:7], qb_ref[3:7]) < 0:
+            qb_ref = qb_ref.copy()
+            qb_ref[3:7] *= -1
         acc_tau = np.zeros(nv)
         acc_grf = np.zeros((4, 3))
         for i in range(n):
             a = i / n
-            qr_h = (1 - a) * q_ref[k, qa] + a * q_ref[k1, qa]
+            qr = (1 - a) * qa_ref + a * qb_ref
             qdr = (1 - a) * qd_ref[k] + a * qd_ref[k1]
-            tff = (1 - a) * ff[k] + a * ff[k1]
-            rres = (1 - a) * id_res[k] + a * id_res[k1]
-            pr = (1 - a) * q_ref[k, :3] + a * q_ref[k1, :3]
-            Rr = _slerp_R(R_a, R_b, np.array(a))
-            qfrc = np.zeros(nv)
-            qfrc[6:] = tff[6:] + kp * (qr_h - d.qpos[7:]) + kd * qdr[6:]
-            R = d.xmat[ch.pelvis].reshape(3, 3)
-            e_rot = R.T @ _log_rot(Rr @ R.T)
-            root = np.zeros(6)
-            root[:3] = mass * (wr * wr * (pr - d.qpos[:3]) + 2 * cfg.root_zeta * wr * (qdr[:3] - d.qvel[:3]))
-            root[3:] = I_root * (wr * wr * e_rot + 2 * cfg.root_zeta * wr * (qdr[3:6] - d.qvel[3:6]))
-            qfrc[:6] = rres + root
+            quat[:] = qr[3:7] / np.linalg.norm(qr[3:7])
+            qfrc[6:] = ((1 - a) * ff[k, 6:] + a * ff[k1, 6:] + kp * (qr[7:] - d.qpos[7:])
+                        + kd * qdr[6:])
+            mujoco.mju_subQuat(e_rot, quat, d.qpos[3:7])  # body-frame rotation to the reference
+            qfrc[:3] = ((1 - a) * id_res[k, :3] + a * id_res[k1, :3]
+                        + mass * (wr * wr * (qr[:3] - d.qpos[:3])
+                                  + 2 * cfg.root_zeta * wr * (qdr[:3] - d.qvel[:3])))
+            qfrc[3:6] = ((1 - a) * id_res[k, 3:] + a * id_res[k1, 3:]
+                         + I_root * (wr * wr * e_rot + 2 * cfg.root_zeta * wr * (qdr[3:6] - d.qvel[3:6])))
             d.qfrc_applied[:] = qfrc
             mujoco.mj_step(mj, d)
-            applied = qfrc.copy()
-            applied[6:] -= kd * d.qvel[6:]  # the implicit damping acted with the new velocity
-            acc_tau += applied
-            for c in range(d.ncon):
-                con = d.contact[c]
-                g1, g2 = int(con.geom1), int(con.geom2)
-                if g1 in floor:
-                    other, sign = g2, 1.0
-                elif g2 in floor:
-                    other, sign = g1, -1.0
-                else:
-                    continue
-                if mj.geom_bodyid[other] not in foot_bodies:
-                    nonfoot += 1
-                    continue
-                mujoco.mj_contactForce(mj, d, c, f6)
-                fw = sign * (con.frame.reshape(3, 3).T @ f6[:3])
-                sp = d.site_xpos[ch.contact_sites]
-                j = int(np.argmin(np.linalg.norm(sp - con.pos, axis=1)))
-                acc_grf[j] += fw
+            acc_tau += qfrc
+            acc_tau[6:] -= kd * d.qvel[6:]  # the implicit damping acted with the new velocity
+            if d.ncon:
+                g1 = d.contact.geom1[: d.ncon]
+                g2 = d.contact.geom2[: d.ncon]
+                sp = None
+                for c in range(d.ncon):
+                    if is_floor[g1[c]]:
+                        other, sign = g2[c], 1.0
+                    elif is_floor[g2[c]]:
+                        other, sign = g1[c], -1.0
+                    else:
+                        continue
+                    if not foot_geom[other]:
+                        nonfoot += 1
+                        continue
+                    mujoco.mj_contactForce(mj, d, c, f6)
+                    con = d.contact[c]
+                    fw = sign * (con.frame.reshape(3, 3).T @ f6[:3])
+                    if sp is None:
+                        sp = d.site_xpos[ch.contact_sites]
+                    j = int(np.argmin(((sp - con.pos) ** 2).sum(axis=1)))
+                    acc_grf[j] += fw
         tau_out[k] = acc_tau / n
         grf_out[k] = acc_grf / n
         resid[k] = tau_out[k, :6]
