@@ -170,6 +170,8 @@ def _synth_one(job):
         return index, generate_clip(seed, index, config), None
     except GenerationError as e:
         return index, None, str(e)
+    except Exception as e:  # a batch run records the failed clip and goes on (docs/DESIGN)
+        return index, None, f"{type(e).__name__}: {e}"
 
 
 def cmd_data_synth(args) -> int:
