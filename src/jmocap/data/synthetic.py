@@ -275,14 +275,16 @@ class Character:
         self.d = mujoco.MjData(mj)
         self.nq, self.nv = mj.nq, mj.nv
         self.q_stand = np.array(model.keyframe("stand"), float)
-        # joint ranges straight from MuJoCo (the same data as model.q_lower / q_upper)
-        self.lower = np.full(mj.nq, -np.inf)
-        self.upper = np.full(mj.nq, np.inf)
+        # joint ranges: model.q_lower / q_upper, completed from MuJoCo's jnt_range where a
+        # limited joint is reported unlimited (an older model.py had that bug)
+        self.lower = np.array(model.q_lower, float)
+        self.upper = np.array(model.q_upper, float)
         for j in range(mj.njnt):
             if mj.jnt_limited[j] and int(mj.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_HINGE),
                                                              int(mujoco.mjtJoint.mjJNT_SLIDE)):
                 a = int(mj.jnt_qposadr[j])
-                self.lower[a], self.upper[a] = mj.jnt_range[j]
+                if not (np.isfinite(self.lower[a]) and np.isfinite(self.upper[a])):
+                    self.lower[a], self.upper[a] = mj.jnt_range[j]
         self.mass = float(np.sum(mj.body_mass))
         self.pelvis = mj.body("pelvis").id
         self.qadr: dict[str, int] = {}
