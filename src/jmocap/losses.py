@@ -39,8 +39,13 @@ def loss_3d(pred: Array, gt: Array, mask: Array | None = None, weight: Array | N
 
 def loss_2d(pred_px: Array, gt_px: Array, image_size: Array, conf: Array | None = None, mask=None) -> Array:
     """L_2D (eq. 19): squared reprojection error of keypoints normalised by the image size,
-    weighted by the keypoints' confidence (0 for missing joints)."""
-    d = jnp.sum(((pred_px - gt_px) / image_size) ** 2, -1)
+    weighted by the keypoints' confidence (0 for missing joints).
+
+    The normalised error is clipped to +-2 image sizes, so that a joint projected from behind or
+    next to the camera plane (an untrained pose) cannot dominate the loss with a huge gradient;
+    its depth is corrected by the 3D and translation losses instead.
+    """
+    d = jnp.sum(jnp.clip((pred_px - gt_px) / image_size, -2.0, 2.0) ** 2, -1)
     if conf is not None:
         d = d * conf
     return masked_mean(d, mask)

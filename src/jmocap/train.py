@@ -1,0 +1,402 @@
+"""Staged training of TPNet, DyNet and GRFNet (paper Sec. 3.5-3.6) with optax.
+
+Stages (each a :class:`StageConfig`; their order and lengths come from a :class:`TrainConfig`):
+
+* ``tpnet`` — pre-training of C_P with L_3D + L_2D + L_ori + L_irr + L_b (eq. 17) and of C_T
+  with L_CT (eq. 24); C_T's gradient does not reach C_P (they are separate pre-trainings).
+* ``dynet`` — DyNet with L_Dyn (eq. 25) through the dynamic cycle, TPNet frozen.
+* ``grfnet`` — GRFNet with L_GRF (eq. 12) through the dynamic cycle, the others frozen.
+* ``joint`` — everything together: the sum of all objectives plus L_3D of the final pose.
+* ``finetune2d`` — Sec. 3.6: the 2D reprojection loss only, against the detector keypoints.
+
+Batches are random windows of clips from a jmocap archive (folder of clip .npz files, e.g.
+``jmocap data synth``); each sample is simulated with a character scaled to its subject's
+height (Model arrays are batched with the samples; the topology is shared, so one compile).
+
+Training is resumable: a checkpoint (parameters, optimiser state, stage, step, random key)
+is written atomically every ``checkpoint_every`` steps and at the end of each stage into
+``out/checkpoint.msgpack``, and a JSON line per logged step into ``out/log.jsonl``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import serialization
+
+from jmocap import losses as Lo
+from jmocap import physics as P
+from jmocap.camera import Camera, project
+from jmocap.cycle import (
+    ClipInputs,
+    CycleConfig,
+    CycleState,
+    body_mass,
+    init_params,
+    pd_error,
+    simulate,
+    target_pose,
+)
+from jmocap.layouts import get_layout
+from jmocap.model import Model, load_model
+from jmocap.physics.rotations import quat_to_mat
+
+NETS = ("tpnet", "dynet", "grfnet")
+STAGE_TRAINS = {
+    "tpnet": ("tpnet",),
+    "dynet": ("dynet",),
+    "grfnet": ("grfnet",),
+    "joint": NETS,
+    "finetune2d": NETS,
+}
+
+
+@dataclass(frozen=True)
+class StageConfig:
+    name: str  # tpnet | dynet | grfnet | joint | finetune2d
+    steps: int
+    lr: float
+    batch: int
+    frames: int  # window length in frames
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    data: tuple[str, ...] = ("data/train",)  # archive folders of clip .npz files
+    out: str = "runs/default"
+    seed: int = 0
+    stages: tuple[StageConfig, ...] = (
+        StageConfig("tpnet", 3000, 1e-3, 16, 12),
+        StageConfig("dynet", 300, 3e-4, 8, 6),
+        StageConfig("grfnet", 300, 3e-4, 8, 6),
+        StageConfig("joint", 200, 1e-4, 8, 6),
+    )
+    cycle: CycleConfig = field(default_factory=CycleConfig)
+    max_clips: int | None = None
+    height_bucket_m: float = 0.05  # subjects are simulated with models scaled to this grid
+    log_every: int = 20
+    checkpoint_every: int = 200
+    clip_grad_norm: float = 1.0
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @staticmethod
+    def from_json(d: dict) -> TrainConfig:
+        d = dict(d)
+        if isinstance(d.get("data"), str):
+            d["data"] = (d["data"],)
+        elif "data" in d:
+            d["data"] = tuple(d["data"])
+        if "stages" in d:
+            d["stages"] = tuple(StageConfig(**s) for s in d["stages"])
+        if "cycle" in d:
+            from jmocap.weights import cycle_config_from_json
+
+            d["cycle"] = cycle_config_from_json(d["cycle"])
+        return TrainConfig(**d)
+
+
+# ---------------------------------------------------------------------------------------
+# data
+# ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class TrainingSet:
+    """Clips of an archive held as numpy arrays, plus one scaled model per height bucket."""
+
+    clips: list[dict]
+    models: list[Model]
+
+    @staticmethod
+    def load(path: str | os.PathLike, config: TrainConfig) -> TrainingSet:
+        from jmocap.data.clip import load_clip
+
+        paths = [path] if isinstance(path, str | os.PathLike) else list(path)
+        files = sorted(f for p in paths for f in Path(p).glob("*.npz"))
+        if config.max_clips:
+            files = files[: config.max_clips]
+        if not files:
+            raise FileNotFoundError(f"no clip .npz files in {path}")
+        layout = get_layout(config.cycle.layout)
+        buckets: dict[float, int] = {}
+        models: list[Model] = []
+        clips = []
+        for f in files:
+            c = load_clip(f)
+            if c.layout != layout.name:
+                raise ValueError(f"{f}: layout {c.layout!r}, training expects {layout.name!r}")
+            if c.gt_q is None or c.gt_keypoints3d is None or c.gt_contacts is None:
+                raise ValueError(f"{f}: training needs gt_q, gt_keypoints3d and gt_contacts")
+            h = c.height_m or 1.75
+            key = round(round(h / config.height_bucket_m) * config.height_bucket_m, 3)
+            if key not in buckets:
+                buckets[key] = len(models)
+                models.append(load_model(height_m=key, with_mjx=False))
+            inputs = ClipInputs.from_clip(c)
+            clean = _project_np(c.intrinsics, inputs.extrinsics, c.gt_keypoints3d)
+            clips.append(
+                dict(
+                    name=c.name,
+                    model=buckets[key],
+                    keypoints=inputs.keypoints,
+                    intrinsics=inputs.intrinsics,
+                    image_size=inputs.image_size,
+                    extrinsics=inputs.extrinsics,
+                    fps=np.float32(c.fps),
+                    gt_q=np.asarray(c.gt_q, np.float32),
+                    gt_qd=np.asarray(c.gt_qd, np.float32),
+                    gt_kp3d=np.asarray(c.gt_keypoints3d, np.float32),
+                    gt_contacts=np.asarray(c.gt_contacts, np.float32),
+                    gt_2d=clean.astype(np.float32),
+                )
+            )
+        return TrainingSet(clips, models)
+
+    def sample(self, rng: np.random.Generator, batch: int, frames: int):
+        """A batch of random windows: (batched Model, dict of (B, frames, ...) arrays)."""
+        picks = []
+        for _ in range(batch):
+            c = self.clips[rng.integers(len(self.clips))]
+            T = c["keypoints"].shape[0]
+            L = min(frames, T)
+            s = int(rng.integers(0, T - L + 1))
+            item = {}
+            for k in ("keypoints", "gt_q", "gt_qd", "gt_kp3d", "gt_contacts", "gt_2d"):
+                a = c[k][s : s + L]
+                pad = np.repeat(a[-1:], frames - L, 0)
+                item[k] = np.concatenate([a, pad])
+            item["mask"] = np.arange(frames) < L
+            for k in ("intrinsics", "image_size", "extrinsics", "fps"):
+                item[k] = c[k]
+            picks.append((c["model"], item))
+        model = jax.tree.map(lambda *xs: np.stack(xs), *[self.models[m] for m, _ in picks])
+        data = {k: np.stack([it[k] for _, it in picks]) for k in picks[0][1]}
+        return model, data
+
+
+def _project_np(intrinsics, extrinsics, X):
+    Xc = X @ extrinsics[:3, :3].T + extrinsics[:3, 3]
+    z = np.maximum(Xc[..., 2:3], 1e-6)
+    return Xc[..., :2] / z * intrinsics[:2] + intrinsics[2:4]
+
+
+# ---------------------------------------------------------------------------------------
+# losses per sample
+# ---------------------------------------------------------------------------------------
+
+
+def _inputs(d) -> ClipInputs:
+    return ClipInputs(d["keypoints"], d["intrinsics"], d["image_size"], d["extrinsics"], d["fps"], d["mask"])
+
+
+def tpnet_losses(params, model, d, key, config: CycleConfig, detach: bool):
+    layout = get_layout(config.layout)
+    mask = d["mask"]
+    tp = target_pose(params, model, _inputs(d), config, train=True, rngs={"dropout": key}, detach_pose=detach)
+    E = d["extrinsics"]
+    R, t = E[:3, :3], E[:3, 3]
+    gt_q = d["gt_q"]
+    rot_gt = jnp.matmul(R, quat_to_mat(gt_q[:, 3:7]))
+    trans_gt = gt_q[:, :3] @ R.T + t
+    p_rr_gt = (d["gt_kp3d"] - gt_q[:, None, :3]) @ R.T
+    kp_world = jax.vmap(lambda q: P.keypoints(model, q, layout))(tp.q_hat)
+    cam = Camera(d["intrinsics"], d["image_size"], E)
+    hq = model.topo.hinge_qadr
+    return tp, {
+        "3d": Lo.loss_3d(tp.p_rr, p_rr_gt, mask),
+        "2d": Lo.loss_2d(project(cam, kp_world), d["gt_2d"], d["image_size"], mask=mask),
+        "ori": Lo.loss_ori(tp.rot_cam, rot_gt, mask),
+        "irr": Lo.loss_irr(tp.q_hat[:, hq], model.q_lower[hq], model.q_upper[hq], mask),
+        "b": Lo.loss_contact(tp.contact_logits, d["gt_contacts"], mask),
+        "ct": Lo.loss_translation(tp.trans_cam, trans_gt, mask),
+    }
+
+
+def cycle_losses(params, model, d, tp, config: CycleConfig):
+    mask = d["mask"]
+    q_hat = tp.q_hat
+    prob = jax.nn.sigmoid(tp.contact_logits)
+    dtype = q_hat.dtype
+    init = CycleState(d["gt_q"][0], d["gt_qd"][0], jnp.zeros((4, 3), dtype))
+    _, out = simulate(params, model, q_hat, prob, mask, d["fps"], config, init=init)
+    e = jax.vmap(lambda a, b: pd_error(model, a, b))(q_hat, out.q)
+    steps = out.steps  # (T, k, ...)
+    k = config.iterations
+    step_mask = jnp.repeat(mask, k)
+    flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), steps)
+    grf_prev = jnp.concatenate([jnp.zeros((1, 4, 3), dtype), flat.grf[:-1]])
+    weight = body_mass(model, dtype) * 9.81
+    normal = jnp.array([0.0, 0.0, 1.0], dtype)
+    layout = get_layout(config.layout)
+    kp = jax.vmap(lambda q: P.keypoints(model, q, layout))(out.q)
+    return {
+        "dyn": Lo.loss_dyn(e, steps.tau_pd.mean(1), mask),
+        "force": Lo.loss_force(flat.tau[:, :6], weight, step_mask),
+        "smooth": Lo.loss_smooth(flat.grf, grf_prev, weight, step_mask),
+        "cone": Lo.loss_cone(flat.grf_raw / weight, normal, config.mu, step_mask),
+        "3d_final": Lo.loss_3d(kp, d["gt_kp3d"], mask),
+    }
+
+
+STAGE_WEIGHTS = {
+    "tpnet": {"3d": 10.0, "2d": 10.0, "ori": 1.0, "irr": 1.0, "b": 0.1, "ct": 1.0},
+    "dynet": {"dyn": 1.0},
+    "grfnet": {"force": 1.0, "smooth": 1.0, "cone": 1.0},
+    "joint": {"3d": 10.0, "2d": 10.0, "ori": 1.0, "irr": 1.0, "b": 0.1, "ct": 1.0, "dyn": 1.0,
+              "force": 1.0, "smooth": 1.0, "cone": 1.0, "3d_final": 10.0},
+    "finetune2d": {"2d": 10.0, "irr": 1.0},
+}
+
+
+def stage_loss(params, model, d, key, stage: str, config: CycleConfig):
+    """Weighted loss of one sample for a stage, and its named terms."""
+    if stage == "finetune2d":  # 2D only: the detector keypoints are the pseudo ground truth
+        d = dict(d, gt_2d=d["keypoints"][..., :2])
+    tp, terms = tpnet_losses(params, model, d, key, config, detach=(stage == "tpnet"))
+    if stage in ("dynet", "grfnet", "joint"):
+        if stage != "joint":
+            tp = jax.lax.stop_gradient(tp)
+        terms.update(cycle_losses(params, model, d, tp, config))
+    w = STAGE_WEIGHTS[stage]
+    total = sum(w[k] * terms[k] for k in w)
+    return total, terms
+
+
+def make_step(stage: StageConfig, config: CycleConfig, optimizer):
+    def batch_loss(params, model, data, key):
+        keys = jax.random.split(key, data["mask"].shape[0])
+        total, terms = jax.vmap(
+            lambda m, d, k: stage_loss(params, m, d, k, stage.name, config)
+        )(model, data, keys)
+        return jnp.mean(total), jax.tree.map(jnp.mean, terms)
+
+    @jax.jit
+    def step(params, opt_state, model, data, key):
+        (loss, terms), grads = jax.value_and_grad(batch_loss, has_aux=True)(params, model, data, key)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        params = optax.apply_updates(params, updates)
+        gnorm = optax.global_norm(grads)
+        return params, opt_state, loss, terms, gnorm
+
+    return step
+
+
+def make_optimizer(stage: StageConfig, params, clip: float):
+    labels = {k: ("train" if k in STAGE_TRAINS[stage.name] else "freeze") for k in params}
+    labels = {k: jax.tree.map(lambda _, v=v: v, params[k]) for k, v in labels.items()}
+    return optax.multi_transform(
+        {
+            "train": optax.chain(optax.clip_by_global_norm(clip), optax.adam(stage.lr)),
+            "freeze": optax.set_to_zero(),
+        },
+        labels,
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# checkpoints and the loop
+# ---------------------------------------------------------------------------------------
+
+
+def save_params(path: str | os.PathLike, params) -> None:
+    """Write parameters (msgpack, float32) atomically."""
+    _atomic_write(Path(path), serialization.msgpack_serialize(jax.tree.map(np.asarray, params)))
+
+
+def load_params(path: str | os.PathLike):
+    """Read parameters written by :func:`save_params` (a nested dict of numpy arrays)."""
+    return serialization.msgpack_restore(Path(path).read_bytes())
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | None = None) -> dict:
+    """Run (or resume) the staged training; returns the final parameters."""
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(config.to_json(), indent=2))
+    data = TrainingSet.load(config.data, config) if data is None else data
+    ckpt_path = out / "checkpoint.msgpack"
+    key = jax.random.PRNGKey(config.seed)
+    params = init_params(key, data.models[0], config.cycle)
+    state = {"stage": 0, "step": 0, "params": params, "opt_state": None, "key": np.asarray(key)}
+    if ckpt_path.exists():
+        restored = serialization.msgpack_restore(ckpt_path.read_bytes())
+        state["stage"], state["step"] = int(restored["stage"]), int(restored["step"])
+        state["params"] = serialization.from_state_dict(params, restored["params"])
+        state["key"] = np.asarray(restored["key"])
+        state["opt_state"] = restored["opt_state"]
+    log = open(out / "log.jsonl", "a")
+    rng = np.random.default_rng(config.seed + 1000 * state["stage"] + state["step"])
+    params = state["params"]
+    key = jnp.asarray(state["key"])
+    try:
+        from tqdm import tqdm
+    except ImportError:  # pragma: no cover
+        tqdm = None
+    for si in range(state["stage"], len(config.stages)):
+        stage = config.stages[si]
+        optimizer = make_optimizer(stage, params, config.clip_grad_norm)
+        opt_state = optimizer.init(params)
+        start = 0
+        if si == state["stage"] and state["opt_state"] is not None:
+            opt_state = serialization.from_state_dict(opt_state, state["opt_state"])
+            start = state["step"]
+        step_fn = make_step(stage, config.cycle, optimizer)
+        bar = tqdm(total=stage.steps, initial=start, desc=stage.name, disable=not progress) if tqdm else None
+        t0 = time.time()
+        for it in range(start, stage.steps):
+            model, batch = data.sample(rng, stage.batch, stage.frames)
+            key, sub = jax.random.split(key)
+            params, opt_state, loss, terms, gnorm = step_fn(params, opt_state, model, batch, sub)
+            if (it + 1) % config.log_every == 0 or it + 1 == stage.steps:
+                rec = {"stage": stage.name, "step": it + 1, "loss": float(loss), "grad_norm": float(gnorm),
+                       "time_s": round(time.time() - t0, 2), **{k: float(v) for k, v in terms.items()}}
+                if not np.isfinite(rec["loss"]):
+                    raise FloatingPointError(f"non-finite loss at stage {stage.name} step {it + 1}: {rec}")
+                log.write(json.dumps(rec) + "\n")
+                log.flush()
+                if bar:
+                    bar.set_postfix(loss=f"{rec['loss']:.4g}")
+            if bar:
+                bar.update(1)
+            last = it + 1 == stage.steps
+            if (it + 1) % config.checkpoint_every == 0 or last:
+                nxt = (si + 1, 0) if last else (si, it + 1)
+                _save_checkpoint(ckpt_path, nxt, params, None if last else opt_state, key)
+        if bar:
+            bar.close()
+        save_params(out / f"params_{stage.name}.msgpack", params)
+    save_params(out / "params.msgpack", params)
+    log.close()
+    return params
+
+
+def _save_checkpoint(path: Path, stage_step, params, opt_state, key) -> None:
+    payload = {
+        "stage": stage_step[0],
+        "step": stage_step[1],
+        "params": serialization.to_state_dict(jax.tree.map(np.asarray, params)),
+        "opt_state": None if opt_state is None else serialization.to_state_dict(jax.tree.map(np.asarray, opt_state)),
+        "key": np.asarray(key),
+    }
+    _atomic_write(path, serialization.msgpack_serialize(payload))
