@@ -61,6 +61,9 @@ class CycleConfig:
     beta: float = 0.2  # penetration recovery factor of the projection
     contact_threshold: float = 0.5
     mu: float = 0.8  # friction coefficient (paper Sec. 3.4.2)
+    # soft limit of the residual (virtual) root force, in body weights (the torque limit is the
+    # same times 1 m); None applies any residual, as eqs. 7 + 13 literally (docs/method.md)
+    root_residual_limit: float | None = 0.5
     # initial PD gains k_p_ini (1/s^2, acceleration units: see docs/method.md) and damping
     kp_root_pos: float = 1600.0
     kp_root_rot: float = 1600.0
@@ -357,6 +360,9 @@ def cycle_step(
         raw = grf = jnp.zeros((4, 3), dtype)
     JtG = Jc.T @ grf.reshape(-1)
     tau_star = tau - JtG  # the contact force compensates the actuation (eq. 13)
+    if config.root_residual_limit is not None:
+        limit = config.root_residual_limit * body_mass(model, dtype) * 9.81
+        tau_star = tau_star.at[:6].set(soft_limit_wrench(tau_star[:6], limit))
     L = P.cholesky(M)
     qdd = P.cho_solve(L, tau_star + JtG - h)  # eq. 13
     qd_free = qd + dt * qdd  # eq. 14
@@ -370,6 +376,18 @@ def cycle_step(
         qd_new = qd_free
     q_new = P.integrate_positions(model, q, qd_new, dt)  # eqs. 1, 14
     return CycleState(q_new, qd_new, grf), StepOutput(tau_star, tau, grf, raw, qd_free)
+
+
+def soft_limit_wrench(wrench: Array, limit) -> Array:
+    """Smoothly saturate a root wrench [force (3); torque (3)]: each part is scaled by
+    ``1 / sqrt(1 + |part|^2 / limit^2)`` (force limit ``limit`` N, torque limit ``limit`` N m),
+    which is the identity for small residuals and tends to ``limit`` in magnitude."""
+    f, t = wrench[:3], wrench[3:]
+
+    def sat(x):
+        return x / jnp.sqrt(1.0 + jnp.sum(x * x) / (limit * limit))
+
+    return jnp.concatenate([sat(f), sat(t)])
 
 
 @struct.dataclass

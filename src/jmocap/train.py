@@ -4,8 +4,10 @@ Stages (each a :class:`StageConfig`; their order and lengths come from a :class:
 
 * ``tpnet`` — pre-training of C_P with L_3D + L_2D + L_ori + L_irr + L_b (eq. 17) and of C_T
   with L_CT (eq. 24); C_T's gradient does not reach C_P (they are separate pre-trainings).
+* ``grfnet`` — GRFNet with L_GRF (eq. 12) through the dynamic cycle, the others frozen. It runs
+  before DyNet here (the paper trains DyNet first): with the residual root force limited
+  (``CycleConfig.root_residual_limit``) the body needs the contact forces to be supported.
 * ``dynet`` — DyNet with L_Dyn (eq. 25) through the dynamic cycle, TPNet frozen.
-* ``grfnet`` — GRFNet with L_GRF (eq. 12) through the dynamic cycle, the others frozen.
 * ``joint`` — everything together: the sum of all objectives plus L_3D of the final pose.
 * ``finetune2d`` — Sec. 3.6: the 2D reprojection loss only, against the detector keypoints.
 
@@ -76,8 +78,8 @@ class TrainConfig:
     seed: int = 0
     stages: tuple[StageConfig, ...] = (
         StageConfig("tpnet", 3000, 1e-3, 16, 12),
-        StageConfig("dynet", 300, 3e-4, 8, 6),
         StageConfig("grfnet", 300, 3e-4, 8, 6),
+        StageConfig("dynet", 300, 3e-4, 8, 6),
         StageConfig("joint", 200, 1e-4, 8, 6),
     )
     cycle: CycleConfig = field(default_factory=CycleConfig)
