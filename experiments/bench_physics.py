@@ -8,7 +8,7 @@ Competitors, on identical random configurations of the default humanoid:
       mj_rne and four mj_jacSite calls per evaluation.
 
 Prints one markdown table: evaluations per second at batch 1, 64 and 1024, ratios, and
-compile times. Usage:  python experiments/bench_physics.py [--quick] [--float64]
+compile times. Usage:  python experiments/bench_physics.py [--quick] [--float64] [--no-mjx] [--mjx-max-batch N]
 """
 
 from __future__ import annotations
@@ -54,9 +54,10 @@ def configs(model, n, seed=0):
     return q, qd
 
 
-def time_fn(fn, *args, repeats: int, min_time: float = 0.2) -> float:
-    """Median seconds per call (after one warm-up call)."""
-    jax.block_until_ready(fn(*args))
+def time_fn(fn, *args, repeats: int, min_time: float = 0.2, warmup: bool = True) -> float:
+    """Median seconds per call (after one warm-up call unless ``warmup=False``)."""
+    if warmup:
+        jax.block_until_ready(fn(*args))
     samples = []
     for _ in range(repeats):
         n, t0 = 0, time.perf_counter()
@@ -70,10 +71,11 @@ def time_fn(fn, *args, repeats: int, min_time: float = 0.2) -> float:
     return statistics.median(samples)
 
 
-def compile_time(fn, *args) -> float:
+def compiled(fn, *args):
+    """(compiled executable, seconds to trace + lower + compile it)."""
     t0 = time.perf_counter()
-    fn.lower(*args).compile()
-    return time.perf_counter() - t0
+    exe = fn.lower(*args).compile()
+    return exe, time.perf_counter() - t0
 
 
 def make_jmocap(model):
@@ -108,9 +110,9 @@ def make_mjx(model):
     return jax.jit(jax.vmap(f))
 
 
-def mujoco_c_loop(model, qs, qds):
+def mujoco_c_loop(model, d, qs, qds):
+    """One evaluation per row; ``d`` (MjData) is allocated once, outside the timed loop."""
     mj = model.mj
-    d = mujoco.MjData(mj)
     M = np.zeros((mj.nv, mj.nv))
     jac = np.zeros((3, mj.nv))
     h = np.zeros(mj.nv)
@@ -133,6 +135,8 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="small batches, few repeats (smoke run)")
     ap.add_argument("--float64", action="store_true", help="run jmocap and MJX in float64")
     ap.add_argument("--no-mjx", action="store_true", help="skip MJX (slow to compile and run on CPU)")
+    ap.add_argument("--mjx-max-batch", type=int, default=1024,
+                    help="skip MJX above this batch (batch 1024 takes ~2-3 minutes on a 2-core CPU)")
     args = ap.parse_args(argv)
     if args.float64:
         jax.config.update("jax_enable_x64", True)
@@ -148,20 +152,25 @@ def main(argv=None):
     print(f"machine: {machine()}")
     print(f"model: default humanoid, nq={model.nq}, nv={model.nv}, nbody={model.topo.nbody}; dtype {np.dtype(dtype).name}\n")
     rows = []
+    d_c = mujoco.MjData(model.mj)
     for B in batches:
         q, qd = configs(model, B, seed=B)
         qj, qdj = jnp.asarray(q, dtype), jnp.asarray(qd, dtype)
-        c_jm = compile_time(jm, qj, qdj)
-        t_jm = time_fn(jm, qj, qdj, repeats=repeats)
-        if mx is not None:
-            c_mx = compile_time(mx, qj, qdj)
-            # MJX is slow on CPU: fewer repeats, at most ~10 s per measurement
-            t_mx = time_fn(mx, qj, qdj, repeats=1 if B >= 1024 else repeats, min_time=0.0)
+        exe, c_jm = compiled(jm, qj, qdj)
+        t_jm = time_fn(exe, qj, qdj, repeats=repeats)
+        if mx is not None and B <= args.mjx_max_batch:
+            exe, c_mx = compiled(mx, qj, qdj)
+            # MJX is slow on CPU (a batch of 1024 takes minutes): already compiled, so no
+            # warm-up call; one timed call per repeat, a single one for large batches
+            t_mx = time_fn(exe, qj, qdj, repeats=1 if B >= 256 else repeats, min_time=0.0,
+                           warmup=B < 256)
         else:
             c_mx = t_mx = float("nan")
-        t_c = time_fn(lambda a, b: mujoco_c_loop(model, a, b), q, qd, repeats=repeats)
+        t_c = time_fn(lambda a, b: mujoco_c_loop(model, d_c, a, b), q, qd, repeats=repeats)
         rows.append((B, B / t_jm, B / t_mx, B / t_c, c_jm, c_mx))
+        print(f"  measured batch {B}", flush=True)
 
+    print(f"\n{time.strftime('%Y-%m-%d %H:%M')}; evaluations/s of (M, h, J_c); compile = trace + lower + compile\n")
     print("| batch | jmocap evals/s | MJX evals/s | MuJoCo C loop evals/s | jmocap / MJX | jmocap / C | compile jmocap (s) | compile MJX (s) |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for B, jm_r, mx_r, c_r, cj, cm in rows:
@@ -169,6 +178,17 @@ def main(argv=None):
             f"| {B} | {jm_r:,.0f} | {mx_r:,.1f} | {c_r:,.0f} | {jm_r / mx_r:,.1f}x | "
             f"{jm_r / c_r:.2f}x | {cj:.1f} | {cm:.1f} |"
         )
+    B, jm_r, mx_r, c_r, cj, cm = rows[-1]
+    c_best = max(r[3] for r in rows)  # MuJoCo C's per-evaluation cost does not depend on B
+    print(f"\ntargets (batch {B}):")
+    print(f"  jmocap / MJX >= 100x: {jm_r / mx_r:,.1f}x  {_verdict(jm_r / mx_r >= 100)}")
+    print(f"  jmocap / MuJoCo C >= 0.5x (goal > 1x): {jm_r / c_best:.2f}x  {_verdict(jm_r / c_best >= 0.5)}")
+    worst = max(r[4] for r in rows)
+    print(f"  jmocap compile < 30 s: worst {worst:.1f} s  {_verdict(worst < 30)}")
+
+
+def _verdict(ok) -> str:
+    return "met" if ok else "NOT met"
 
 
 if __name__ == "__main__":
