@@ -1,0 +1,930 @@
+"""Evaluation metrics of 3D human motion capture: pose, smoothness, 2D reprojection, foot-floor
+contact, dynamics and contact classification, each exactly as its source paper defines it.
+
+Papers (full text in ``shared/papers/``): [000] Shimada et al. 2021, Neural PhysCap; [001]
+Rempe et al. 2020, Contact and Human Dynamics from Monocular Video; [002] Yi et al. 2022, PIP.
+``docs/evaluation.md`` restates every definition with its units and the choices made where a
+paper is silent.
+
+Conventions
+-----------
+* Every metric is pure ``jax.numpy``: it runs eagerly, under ``jax.jit`` and under ``jax.vmap``.
+  Arrays have any leading batch dimensions, then frames: joints ``(..., T, J, 3)`` in metres in
+  the z-up world (floor z = 0), foot points ``(..., T, P, 3)``, contact labels ``(..., T, P)``.
+* ``mask`` (``(..., T)`` bool, default all True) marks the real frames; a metric averages over
+  real frames only. A finite difference is used only where every frame it reads is real.
+* A metric whose selection is empty (no real frame, no in-contact frame, no flight frame, ...)
+  returns NaN: it is undefined there, not zero. :func:`evaluate_arrays` validates that its inputs
+  are finite first, so a NaN it sees can only mean "undefined", and it leaves that key out.
+* Pose errors are reported in millimetres, as the papers do; other units are in the names of
+  the keys of :func:`evaluate_arrays` (``_mm``, ``_pct``, ``_px``, ``_m``, ...).
+* Wrong shapes raise ``ValueError`` naming the argument and its shape.
+
+Physics helpers (:func:`motion_quantities`, :func:`zero_moment_point`) read a
+:class:`jmocap.Model` and reuse :mod:`jmocap.physics`; they are jit/vmap-able as well.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping
+from functools import partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jmocap import physics as P
+from jmocap.camera import Camera, project
+from jmocap.model import Model
+from jmocap.numerics import safe_div, safe_normalize
+from jmocap.physics.rotations import quat_to_mat
+
+Array = jnp.ndarray
+
+GRAVITY = 9.81  # m/s^2, the body weight is mass * GRAVITY (the model's gravity is -9.81 z)
+PCK_THRESHOLD_MM = 150.0
+AUC_MAX_MM = 150.0
+AUC_STEPS = 31  # thresholds 0, 5, ..., 150 mm
+FLOAT_THRESHOLD_M = 0.03  # Rempe et al. [001] Sec. 4.3: floating / penetration 3 cm, skate 2 cm
+PENETRATION_THRESHOLD_M = 0.03
+SKATE_THRESHOLD_M = 0.02
+CONTACT_MAX_STEP_M = 0.02  # Rempe et al. [001] Sec. 3.2 contact labelling rule
+CONTACT_MAX_HEIGHT_M = 0.05
+PNP_TOLERANCE_M = 0.001  # PNP: penetration deeper than 1 mm (the paper gives no tolerance)
+ZMP_MIN_NORMAL_FORCE = 0.1  # frames whose implied vertical force is below 10 % of body weight
+ALIGNMENTS = ("none", "root", "procrustes")
+
+
+# =========================================================================================
+# validation and masked reductions
+# =========================================================================================
+
+
+def _points(x, name: str, dims: str = "T, J, 3") -> Array:
+    """``x`` as an array of shape ``(..., <dims>)``, e.g. ``dims = "T, J, 3"``: at least that
+    many dimensions, numeric entries checked; ValueError naming ``name`` otherwise."""
+    x = jnp.asarray(x)
+    parts = [d.strip() for d in dims.split(",")]
+    tail = x.shape[x.ndim - len(parts):] if x.ndim >= len(parts) else None
+    if tail is None or any(d.isdigit() and int(d) != n for d, n in zip(parts, tail, strict=True)):
+        raise ValueError(f"{name} must have shape (..., {dims}), got {tuple(x.shape)}")
+    return x
+
+
+def _same(a: Array, b: Array, na: str, nb: str) -> None:
+    if a.shape != b.shape:
+        raise ValueError(f"{na} and {nb} must have the same shape, got {tuple(a.shape)} and {tuple(b.shape)}")
+
+
+def _frame_mask(mask, lead: tuple[int, ...]) -> Array:
+    """The (..., T) frame mask (all True when None), checked against the arrays' (..., T)."""
+    if mask is None:
+        return jnp.ones(lead, bool)
+    m = jnp.asarray(mask)
+    if m.shape != tuple(lead):
+        raise ValueError(f"mask must have shape (..., T) = {tuple(lead)}, got {tuple(m.shape)}")
+    return m.astype(bool)
+
+
+def _diff_mask(mask: Array, n: int) -> Array:
+    """(..., T) -> (..., T - n): True where frames t .. t + n are all real (an n-th difference)."""
+    T = mask.shape[-1]
+    out = mask[..., : T - n]
+    for k in range(1, n + 1):
+        out = out & mask[..., k : T - n + k]
+    return out
+
+
+def _central_mask(mask: Array) -> Array:
+    """(..., T): True where frame t and both neighbours are real (a central difference)."""
+    inner = _diff_mask(mask, 2)
+    pad = jnp.zeros(mask.shape[:-1] + (1,), bool)
+    return jnp.concatenate([pad, inner, pad], -1)
+
+
+def _mean(x: Array, w: Array, nd: int) -> Array:
+    """Weighted mean over the last ``nd`` axes of ``x``: ``sum(w x) / sum(w)``, NaN when
+    ``sum(w) == 0`` (entries with zero weight never contribute, even if not finite)."""
+    w = jnp.broadcast_to(w, x.shape).astype(x.dtype)
+    axes = tuple(range(-nd, 0))
+    s = jnp.sum(w, axis=axes)
+    num = jnp.sum(jnp.where(w > 0, x, 0.0) * w, axis=axes)
+    return jnp.where(s > 0, num / jnp.where(s > 0, s, 1.0), jnp.nan)
+
+
+def _std(x: Array, w: Array, nd: int) -> Array:
+    """Population standard deviation (ddof 0) over the last ``nd`` axes; NaN when empty."""
+    mu = _mean(x, w, nd).reshape(x.shape[: x.ndim - nd] + (1,) * nd)
+    return jnp.sqrt(_mean((x - mu) ** 2, w, nd))
+
+
+def _pct(count: Array, total: Array) -> Array:
+    """100 count / total, NaN when total == 0."""
+    return jnp.where(total > 0, 100.0 * count / jnp.where(total > 0, total, 1), jnp.nan)
+
+
+def _bcast(value, dtype, trailing: int) -> Array:
+    """A per-clip scalar (fps, weight, mass: shape () or the batch shape (...,)) reshaped to
+    broadcast against arrays with ``trailing`` more dimensions."""
+    v = jnp.asarray(value, dtype)
+    return v.reshape(v.shape + (1,) * trailing)
+
+
+# =========================================================================================
+# pose (3D joint positions)
+# =========================================================================================
+
+
+@partial(jax.jit, static_argnames=("root",))
+def root_position(joints: Array, root=(0,)) -> Array:
+    """(..., T, J, 3) -> (..., T, 3): the root, the mean of the joints ``root`` (a layout's
+    ``root_indices``: MidHip for BODY_25, Hip for H36M, the two hips for COCO)."""
+    joints = _points(joints, "joints")
+    return jnp.mean(joints[..., np.asarray(root, int), :], axis=-2)
+
+
+@partial(jax.jit, static_argnames=("root",))
+def root_align(joints: Array, root=(0,)) -> Array:
+    """Joints relative to their root, per frame: ``p_j - root``."""
+    return joints - root_position(joints, root)[..., None, :]
+
+
+@jax.jit
+def procrustes_align(pred: Array, gt: Array) -> Array:
+    """``pred`` (..., J, 3) moved onto ``gt`` by the least-squares similarity transform per
+    frame: ``s R p + t`` with scale s > 0, a *proper* rotation R (det R = +1: a mirrored pose is
+    not a rotated pose) and translation t (Umeyama 1991, IEEE TPAMI 13(4), eqs. 38-42).
+
+    With the centred point sets X (pred) and Y (gt), ``X^T Y = U S V^T``,
+    ``R = V diag(1, 1, d) U^T`` with ``d = sign det(V U^T)``, ``s = tr(diag(1, 1, d) S) / |X|^2``.
+    """
+    pred = _points(pred, "pred", "J, 3")
+    gt = _points(gt, "gt", "J, 3")
+    _same(pred, gt, "pred", "gt")
+    mp = jnp.mean(pred, -2, keepdims=True)
+    mg = jnp.mean(gt, -2, keepdims=True)
+    X, Y = pred - mp, gt - mg
+    H = jnp.swapaxes(X, -1, -2) @ Y  # sum_j x_j y_j^T
+    U, S, Vt = jnp.linalg.svd(H)
+    d = jnp.where(jnp.linalg.det(U @ Vt) < 0, -1.0, 1.0).astype(pred.dtype)
+    c = jnp.concatenate([jnp.ones(d.shape + (2,), pred.dtype), d[..., None]], -1)  # diag(1, 1, d)
+    R = jnp.swapaxes(Vt, -1, -2) @ (c[..., :, None] * jnp.swapaxes(U, -1, -2))
+    s = safe_div(jnp.sum(c * S, -1), jnp.sum(X * X, axis=(-1, -2)))
+    return s[..., None, None] * (X @ jnp.swapaxes(R, -1, -2)) + mg
+
+
+@partial(jax.jit, static_argnames=("align", "root"))
+def joint_errors(pred: Array, gt: Array, align: str = "root", root=(0,)) -> Array:
+    """Per-joint Euclidean errors (..., T, J) in metres after an alignment.
+
+    ``align``: ``"none"`` (absolute: world coordinates as they are), ``"root"`` (each pose
+    translated so that its root is at the origin: the standard "MPJPE without Procrustes" of
+    [000] Table 1) or ``"procrustes"`` (per-frame similarity alignment, :func:`procrustes_align`).
+    """
+    pred = _points(pred, "pred")
+    gt = _points(gt, "gt")
+    _same(pred, gt, "pred", "gt")
+    if align == "root":
+        pred, gt = root_align(pred, root), root_align(gt, root)
+    elif align == "procrustes":
+        pred = procrustes_align(pred, gt)
+    elif align != "none":
+        raise ValueError(f"align must be one of {ALIGNMENTS}, got {align!r}")
+    return jnp.linalg.norm(pred - gt, axis=-1)
+
+
+def _errors_mm(pred, gt, mask, align, root):
+    err = joint_errors(pred, gt, align, root) * 1000.0
+    return err, _frame_mask(mask, err.shape[:-1])[..., None]
+
+
+@partial(jax.jit, static_argnames=("align", "root"))
+def mpjpe(pred: Array, gt: Array, mask=None, *, align: str = "root", root=(0,)) -> Array:
+    """Mean per-joint position error (mm): the mean over real frames and joints of
+    ``|p_pred - p_gt|`` after ``align`` (root-aligned by default; ``"none"`` for the absolute,
+    global error; ``"procrustes"`` for PA-MPJPE). [000] Table 1, Sec. 4.3."""
+    err, w = _errors_mm(pred, gt, mask, align, root)
+    return _mean(err, w, 2)
+
+
+@jax.jit
+def pa_mpjpe(pred: Array, gt: Array, mask=None) -> Array:
+    """Procrustes-aligned MPJPE (mm): per-frame similarity alignment with scale and a proper
+    rotation (reflections are not allowed), then MPJPE. [000] Table 1 ("Procrustes")."""
+    return mpjpe(pred, gt, mask, align="procrustes")
+
+
+def _pck_of(err_mm: Array, w: Array, threshold_mm: float) -> Array:
+    return 100.0 * _mean((err_mm < threshold_mm).astype(err_mm.dtype), w, 2)
+
+
+def _auc_of(err_mm: Array, w: Array, max_mm: float, steps: int) -> Array:
+    th = jnp.linspace(0.0, max_mm, steps, dtype=err_mm.dtype)
+    passed = (err_mm[..., None] < th).astype(err_mm.dtype).mean(-1)  # share of thresholds met
+    return 100.0 * _mean(passed, w, 2)
+
+
+@partial(jax.jit, static_argnames=("align", "root"))
+def pck(pred: Array, gt: Array, mask=None, *, threshold_mm: float = PCK_THRESHOLD_MM,
+        align: str = "root", root=(0,)) -> Array:
+    """Percentage of correct keypoints (%): joints whose error is below ``threshold_mm``
+    (150 mm, the MPI-INF-3DHP protocol used by [000] Table 1), after ``align``."""
+    return _pck_of(*_errors_mm(pred, gt, mask, align, root), threshold_mm)
+
+
+@partial(jax.jit, static_argnames=("steps", "align", "root"))
+def auc(pred: Array, gt: Array, mask=None, *, max_mm: float = AUC_MAX_MM, steps: int = AUC_STEPS,
+        align: str = "root", root=(0,)) -> Array:
+    """Area under the PCK curve (%): the mean of PCK (error strictly below the threshold) at
+    ``steps`` thresholds evenly spaced over 0..``max_mm`` (0, 5, ..., 150 mm: 31 thresholds),
+    after ``align``. [000] Table 1 (MPI-INF-3DHP protocol). PCK at 0 mm is always 0, so a
+    perfect estimate scores 30/31 = 96.8 %."""
+    return _auc_of(*_errors_mm(pred, gt, mask, align, root), max_mm, steps)
+
+
+@partial(jax.jit, static_argnames=("root",))
+def root_translation_error(pred: Array, gt: Array, mask=None, *, root=(0,)) -> Array:
+    """Global root translation error (mm): mean over real frames of ``|r_pred - r_gt|``, r the
+    root joint (:func:`root_position`) in world coordinates. [000] Table 2."""
+    pred = _points(pred, "pred")
+    gt = _points(gt, "gt")
+    _same(pred, gt, "pred", "gt")
+    e = jnp.linalg.norm(root_position(pred, root) - root_position(gt, root), axis=-1) * 1000.0
+    return _mean(e, _frame_mask(mask, e.shape), 1)
+
+
+# =========================================================================================
+# smoothness
+# =========================================================================================
+
+
+def _diff(x: Array, n: int, mask, axis: int = -3):
+    d = jnp.diff(x, n=n, axis=axis)
+    m = _frame_mask(mask, x.shape[: x.ndim + axis + 1])
+    return d, _diff_mask(m, n)
+
+
+@jax.jit
+def smoothness_error(pred: Array, gt: Array, mask=None) -> tuple[Array, Array]:
+    """``(e_smooth, sigma_smooth)`` in mm, [000] eq. 26 (after PhysCap, Shimada et al. 2020).
+
+    ``Jit_X(s, t) = |p_X(s, t) - p_X(s, t - 1)|`` is the frame-to-frame displacement of joint s;
+    ``e_smooth`` is the mean over joints and frame pairs of ``|Jit_GT - Jit_pred|`` and
+    ``sigma_smooth`` its (population) standard deviation over the same terms. Positions are the
+    world (absolute) joint positions. A pair counts when both of its frames are real (eq. 26's
+    1/(Tk) runs over the T - 1 pairs of a T-frame clip).
+    """
+    pred = _points(pred, "pred")
+    gt = _points(gt, "gt")
+    _same(pred, gt, "pred", "gt")
+    dp, w = _diff(pred, 1, mask)
+    dg, _ = _diff(gt, 1, mask)
+    term = jnp.abs(jnp.linalg.norm(dg, axis=-1) - jnp.linalg.norm(dp, axis=-1)) * 1000.0
+    w = w[..., None]
+    return _mean(term, w, 2), _std(term, w, 2)
+
+
+@jax.jit
+def acceleration_error(pred: Array, gt: Array, fps, mask=None) -> Array:
+    """Acceleration error (m/s^2): mean over joints and frames of ``|a_pred - a_gt|`` with
+    ``a = (p_{t+1} - 2 p_t + p_{t-1}) fps^2`` (second differences). HMMR/VIBE report the same
+    second differences per frame^2 in "mm"; theirs = ours * 1000 / fps^2."""
+    pred = _points(pred, "pred")
+    gt = _points(gt, "gt")
+    _same(pred, gt, "pred", "gt")
+    ap, w = _diff(pred, 2, mask)
+    ag, _ = _diff(gt, 2, mask)
+    e = jnp.linalg.norm(ap - ag, axis=-1) * _bcast(fps, ap.dtype, 2) ** 2
+    return _mean(e, w[..., None], 2)
+
+
+@jax.jit
+def jitter(joints: Array, fps, mask=None) -> Array:
+    """Jitter (km/s^3), PIP [002] Sec. 4: the mean jerk magnitude of all joints in world
+    coordinates, ``|p_{t+3} - 3 p_{t+2} + 3 p_{t+1} - p_t| fps^3 / 1000`` (third differences)."""
+    joints = _points(joints, "joints")
+    d, w = _diff(joints, 3, mask)
+    jerk = jnp.linalg.norm(d, axis=-1) * _bcast(fps, d.dtype, 2) ** 3 / 1000.0
+    return _mean(jerk, w[..., None], 2)
+
+
+# =========================================================================================
+# 2D reprojection
+# =========================================================================================
+
+
+@jax.jit
+def side_view_camera(camera: Camera, pivot: Array, angle: float = np.pi / 2) -> Camera:
+    """The virtual evaluation camera of [000] Table 4: the input ``camera`` rotated by ``angle``
+    (default +90 deg, counter-clockwise seen from above) about the vertical world axis through
+    ``pivot`` (..., 3) (only its x, y matter), with the same intrinsics and image size.
+
+    The camera pose moves by the world rigid motion G (that rotation), so its world->camera
+    extrinsics become ``E G^-1``: it sees the subject from the side at the same distance.
+    """
+    c, s = jnp.cos(-angle), jnp.sin(-angle)
+    pivot = jnp.asarray(pivot, camera.extrinsics.dtype)
+    Rz = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], camera.extrinsics.dtype)  # G^-1
+    p = pivot.at[..., 2].set(0.0)
+    t = p - jnp.einsum("ij,...j->...i", Rz, p)
+    G_inv = jnp.zeros(p.shape[:-1] + (4, 4), p.dtype).at[..., :3, :3].set(Rz)
+    G_inv = G_inv.at[..., :3, 3].set(t).at[..., 3, 3].set(1.0)
+    return camera.replace(extrinsics=camera.extrinsics @ G_inv)
+
+
+@jax.jit
+def reprojection_error(pred: Array, gt: Array, camera: Camera, mask=None) -> tuple[Array, Array]:
+    """``(e_2D, sigma_2D)`` in pixels, [000] Table 4: the mean and (population) standard
+    deviation over joints and real frames of ``|pi(p_pred) - pi(p_gt)|``, pi the pinhole
+    projection of ``camera`` (:func:`jmocap.camera.project`). For the side view, pass
+    :func:`side_view_camera`."""
+    pred = _points(pred, "pred")
+    gt = _points(gt, "gt")
+    _same(pred, gt, "pred", "gt")
+    e = jnp.linalg.norm(project(camera, pred) - project(camera, gt), axis=-1)
+    w = _frame_mask(mask, e.shape[:-1])[..., None]
+    return _mean(e, w, 2), _std(e, w, 2)
+
+
+# =========================================================================================
+# foot-floor contact
+# =========================================================================================
+
+
+def _feet(points, contacts=None):
+    points = _points(points, "foot_points", "T, P, 3")
+    if contacts is None:
+        return points, None
+    c = jnp.asarray(contacts)
+    if c.shape != points.shape[:-1]:
+        raise ValueError(f"contacts must have shape (..., T, P) = {tuple(points.shape[:-1])}, got {tuple(c.shape)}")
+    return points, c > 0.5
+
+
+@jax.jit
+def contact_labels(points: Array, max_step: float = CONTACT_MAX_STEP_M,
+                   max_height: float = CONTACT_MAX_HEIGHT_M) -> Array:
+    """Rempe et al.'s labelling rule [001] Sec. 3.2 on foot points (..., T, P, 3): a point is in
+    contact at frame t when it moved less than ``max_step`` (2 cm) since frame t - 1 and is less
+    than ``max_height`` (5 cm) above the floor; frame 0 uses its displacement to frame 1. (The
+    rule that made the synthetic ``gt_contacts``.) Returns bool (..., T, P)."""
+    points = _points(points, "foot_points", "T, P, 3")
+    step = jnp.linalg.norm(jnp.diff(points, axis=-3), axis=-1)
+    step = jnp.concatenate([step[..., :1, :], step], -2) if points.shape[-3] > 1 else jnp.zeros(points.shape[:-1])
+    return (step < max_step) & (points[..., 2] < max_height)
+
+
+@jax.jit
+def mean_penetration_error(points: Array, contacts: Array, mask=None) -> Array:
+    """Mean Penetration Error, MPE (mm), [000] Table 5: the mean distance ``|z|`` between foot
+    point and floor over the points and real frames where the foot is in contact (``contacts``,
+    ground-truth labels)."""
+    points, c = _feet(points, contacts)
+    w = c & _frame_mask(mask, points.shape[:-2])[..., None]
+    return _mean(jnp.abs(points[..., 2]) * 1000.0, w, 2)
+
+
+@jax.jit
+def non_penetration(points: Array, mask=None, *, tolerance: float = PNP_TOLERANCE_M) -> Array:
+    """Percentage of Non-Penetration, PNP (%), [000] Table 5: the share of real frames in which
+    no foot point is below the floor, ``z >= -tolerance`` for every point. The paper states no
+    tolerance; jmocap's 1 mm keeps float noise and the sub-millimetre sinking of soft (MuJoCo)
+    contacts from counting as penetration."""
+    points, _ = _feet(points)
+    ok = jnp.all(points[..., 2] >= -tolerance, axis=-1)
+    m = _frame_mask(mask, ok.shape)
+    return 100.0 * _mean(ok.astype(points.dtype), m, 1)
+
+
+@jax.jit
+def foot_floating(points: Array, contacts: Array, mask=None, *, threshold: float = FLOAT_THRESHOLD_M) -> Array:
+    """Floating (%), [001] Table 2: among the (point, frame) pairs in contact by the labels, the
+    share more than ``threshold`` (3 cm) above the floor."""
+    points, c = _feet(points, contacts)
+    w = c & _frame_mask(mask, points.shape[:-2])[..., None]
+    return 100.0 * _mean((points[..., 2] > threshold).astype(points.dtype), w, 2)
+
+
+@jax.jit
+def foot_penetration(points: Array, mask=None, *, threshold: float = PENETRATION_THRESHOLD_M) -> Array:
+    """Penetration (%), [001] Table 2: the share of all (point, frame) pairs more than
+    ``threshold`` (3 cm) below the floor, at any time."""
+    points, _ = _feet(points)
+    w = jnp.broadcast_to(_frame_mask(mask, points.shape[:-2])[..., None], points.shape[:-1])
+    return 100.0 * _mean((points[..., 2] < -threshold).astype(points.dtype), w, 2)
+
+
+@jax.jit
+def foot_skate(points: Array, contacts: Array, mask=None, *, threshold: float = SKATE_THRESHOLD_M) -> Array:
+    """Skate (%), [001] Table 2: among the (point, frame t >= 1) pairs in contact at t by the
+    labels, the share that moved more than ``threshold`` (2 cm, 3D distance) since frame t - 1."""
+    points, c = _feet(points, contacts)
+    step = jnp.linalg.norm(jnp.diff(points, axis=-3), axis=-1)  # (..., T-1, P): t-1 -> t
+    m = _diff_mask(_frame_mask(mask, points.shape[:-2]), 1)[..., None]
+    w = c[..., 1:, :] & m
+    return 100.0 * _mean((step > threshold).astype(points.dtype), w, 2)
+
+
+# =========================================================================================
+# dynamics
+# =========================================================================================
+
+
+def _forces(grf, name="grf") -> Array:
+    return _points(grf, name, "T, P, 3")
+
+
+@jax.jit
+def net_force_percent(grf: Array, weight) -> Array:
+    """(..., T, P, 3) contact forces -> (..., T) ``|sum_P f| / weight * 100`` (% body weight);
+    [001] Sec. 4.3 (the net GRF ``f_GRF(t) = sum_i f_i(t)``)."""
+    grf = _forces(grf)
+    return jnp.linalg.norm(jnp.sum(grf, -2), axis=-1) / _bcast(weight, grf.dtype, 1) * 100.0
+
+
+@jax.jit
+def grf_mean(grf: Array, weight, mask=None) -> Array:
+    """Mean GRF (% body weight), [001] Table 2: the mean over real frames of the net contact
+    force magnitude over the body weight (``mass * 9.81``); about 100 % for any motion that
+    starts and ends at rest."""
+    f = net_force_percent(grf, weight)
+    return _mean(f, _frame_mask(mask, f.shape), 1)
+
+
+@jax.jit
+def grf_max(grf: Array, weight, mask=None) -> Array:
+    """Max GRF (% body weight), [001] Table 2: the largest net contact force over real frames."""
+    f = net_force_percent(grf, weight)
+    m = _frame_mask(mask, f.shape)
+    return jnp.where(jnp.any(m, -1), jnp.max(jnp.where(m, f, -jnp.inf), -1), jnp.nan)
+
+
+@jax.jit
+def grf_ballistic(grf: Array, weight, flight: Array, mask=None) -> Array:
+    """Ballistic GRF (% body weight), [001] Table 2: the *median* net contact force over the real
+    frames of flight (``flight`` (..., T) True where no foot point is in contact); 0 for a
+    physically valid motion, in which only gravity acts during flight."""
+    f = net_force_percent(grf, weight)
+    fl = jnp.asarray(flight, bool)
+    if fl.shape != f.shape:
+        raise ValueError(f"flight must have shape (..., T) = {tuple(f.shape)}, got {tuple(fl.shape)}")
+    sel = fl & _frame_mask(mask, f.shape)
+    return jnp.nanmedian(jnp.where(sel, f, jnp.nan), axis=-1)
+
+
+@jax.jit
+def root_residual(tau: Array, weight, mask=None) -> Array:
+    """Residual root force (% body weight), [000] Fig. 4d: the mean over real frames of
+    ``|tau_root| / w`` with ``tau_root = tau[:3]`` the virtual (non-physical) force that acts on
+    the root directly and w the body weight."""
+    tau = _points(tau, "tau", "T, nv")
+    if tau.shape[-1] < 6:
+        raise ValueError(f"tau must have shape (..., T, nv >= 6), got {tuple(tau.shape)}")
+    r = jnp.linalg.norm(tau[..., :3], axis=-1) / _bcast(weight, tau.dtype, 1) * 100.0
+    return _mean(r, _frame_mask(mask, r.shape), 1)
+
+
+@jax.jit
+def grf_error(grf: Array, gt_grf: Array, weight, gt_weight, mask=None) -> Array:
+    """Net GRF error (% body weight): the mean over real frames of
+    ``|sum_P f / w - sum_P f_gt / w_gt| * 100``, each force over the weight of its own model (the
+    estimate's character may weigh other than the subject)."""
+    grf, gt_grf = _forces(grf), _forces(gt_grf, "gt_grf")
+    a = jnp.sum(grf, -2) / _bcast(weight, grf.dtype, 2)
+    b = jnp.sum(gt_grf, -2) / _bcast(gt_weight, gt_grf.dtype, 2)
+    _same(a, b, "grf (net)", "gt_grf (net)")
+    e = jnp.linalg.norm(a - b, axis=-1) * 100.0
+    return _mean(e, _frame_mask(mask, e.shape), 1)
+
+
+@jax.jit
+def torque_error(tau: Array, gt_tau: Array, mass, gt_mass, mask=None) -> Array:
+    """Joint torque error (N m / kg): the mean over real frames and hinge dofs (``tau[6:]``) of
+    ``|tau / m - tau_gt / m_gt|``, each torque over the mass of its own model."""
+    tau = _points(tau, "tau", "T, nv")
+    gt_tau = _points(gt_tau, "gt_tau", "T, nv")
+    _same(tau, gt_tau, "tau", "gt_tau")
+    e = jnp.abs(tau[..., 6:] / _bcast(mass, tau.dtype, 2) - gt_tau[..., 6:] / _bcast(gt_mass, tau.dtype, 2))
+    return _mean(e, _frame_mask(mask, tau.shape[:-1])[..., None], 2)
+
+
+@jax.jit
+def zmp_from_wrench(force: Array, torque: Array, origin: Array) -> Array:
+    """The zero-moment point (..., 2) on the floor z = 0 of an external wrench (force (..., 3),
+    torque (..., 3) about ``origin`` (..., 3), world frame): the floor point about which the
+    wrench has no horizontal moment,
+
+        p_x = o_x - (n_y + o_z f_x) / f_z,    p_y = o_y + (n_x - o_z f_y) / f_z.
+
+    Defined for ``f_z > 0`` (returns the origin's projection where ``f_z == 0``)."""
+    f, n, o = force, torque, origin
+    px = o[..., 0] - safe_div(n[..., 1] + o[..., 2] * f[..., 0], f[..., 2])
+    py = o[..., 1] + safe_div(n[..., 0] - o[..., 2] * f[..., 1], f[..., 2])
+    return jnp.stack([px, py], -1)
+
+
+def _difference_velocities(model: Model, q: Array, fps) -> tuple[Array, Array]:
+    """Central-difference velocity and acceleration (T, nv) of a pose sequence (edge frames
+    replicate a neighbour's difference: mask them, see :func:`_central_mask`)."""
+    from jmocap.cycle import finite_difference_velocity
+
+    back = finite_difference_velocity(model, q, fps)  # (q_t - q_{t-1}) fps, row 0 zero
+    fwd = jnp.concatenate([back[1:], back[-1:]], 0)  # (q_{t+1} - q_t) fps
+    return 0.5 * (back + fwd), (fwd - back) * jnp.asarray(fps, q.dtype)
+
+
+def _cross2(a: Array, b: Array) -> Array:
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def _point_segment_distance(p: Array, a: Array, b: Array) -> Array:
+    ab = b - a
+    t = jnp.clip(safe_div(jnp.sum((p - a) * ab, -1), jnp.sum(ab * ab, -1)), 0.0, 1.0)
+    return jnp.linalg.norm(p - (a + t[..., None] * ab), axis=-1)
+
+
+@jax.jit
+def support_polygon_distance(point: Array, vertices: Array, active: Array) -> Array:
+    """Distance (...,) in the floor plane from ``point`` (..., 2) to the convex hull of the
+    ``active`` (..., V) ``vertices`` (..., V, 2|3; only x, y are used); 0 inside or on the hull,
+    NaN when no vertex is active.
+
+    Exact for any V (meant for a handful): the point is inside the hull iff it lies in a
+    non-degenerate triangle of active vertices (Caratheodory); outside, the nearest hull point
+    lies on a segment between two active vertices (one vertex: the distance to it; two: to the
+    segment).
+    """
+    p = jnp.asarray(point)[..., :2]
+    v = jnp.asarray(vertices)[..., :2]
+    act = jnp.asarray(active, bool)
+    V = v.shape[-2]
+    if act.shape[-1] != V:
+        raise ValueError(f"active must have shape (..., V) with V = {V}, got {tuple(act.shape)}")
+    i, j = np.triu_indices(V)  # pairs with i <= j (i == j: a single vertex)
+    d = _point_segment_distance(p[..., None, :], v[..., i, :], v[..., j, :])
+    d = jnp.min(jnp.where(act[..., i] & act[..., j], d, jnp.inf), -1)
+    inside = jnp.zeros(d.shape, bool)
+    if V >= 3:
+        ijk = np.array(list(itertools.combinations(range(V), 3)))
+        a, b, c = (v[..., ijk[:, k], :] for k in range(3))
+        q = p[..., None, :]
+        c1, c2, c3 = _cross2(b - a, q - a), _cross2(c - b, q - b), _cross2(a - c, q - c)
+        area = jnp.abs(_cross2(b - a, c - a))
+        scale = jnp.max(jnp.abs(v), axis=(-1, -2))[..., None] + 1.0
+        tri = ((c1 >= 0) & (c2 >= 0) & (c3 >= 0)) | ((c1 <= 0) & (c2 <= 0) & (c3 <= 0))
+        ok = act[..., ijk[:, 0]] & act[..., ijk[:, 1]] & act[..., ijk[:, 2]]
+        inside = jnp.any(tri & ok & (area > 1e-12 * scale * scale), -1)
+    return jnp.where(jnp.any(act, -1), jnp.where(inside, 0.0, d), jnp.nan)
+
+
+@jax.jit
+def zmp_distance(zmp: Array, normal_force: Array, weight, support: Array, contacts: Array, mask=None,
+                 *, min_normal: float = ZMP_MIN_NORMAL_FORCE) -> Array:
+    """ZMP distance (m), PIP [002] Sec. 4: the mean over frames of the distance from the ZMP
+    (..., T, 2) to the support polygon (base of support), the convex hull of the in-contact
+    ``support`` points (..., T, V, 3) projected on the floor (:func:`support_polygon_distance`).
+
+    A frame counts when it and both neighbours are real (the ZMP uses central differences), at
+    least one support point is in contact (``contacts`` (..., T, V)) and the motion needs a
+    vertical force of at least ``min_normal`` body weights (below that, in flight or nearly,
+    the ZMP is undefined or arbitrarily far).
+    """
+    zmp = _points(zmp, "zmp", "T, 2")
+    support, c = _feet(support, contacts)
+    m = _central_mask(_frame_mask(mask, zmp.shape[:-1]))
+    fz = jnp.asarray(normal_force, zmp.dtype)
+    if fz.shape != zmp.shape[:-1]:
+        raise ValueError(f"normal_force must have shape (..., T) = {tuple(zmp.shape[:-1])}, got {tuple(fz.shape)}")
+    sel = m & jnp.any(c, -1) & (fz >= min_normal * _bcast(weight, fz.dtype, 1))
+    d = support_polygon_distance(zmp, support, c)
+    return _mean(jnp.where(sel, d, 0.0), sel, 1)
+
+
+# =========================================================================================
+# contact classification
+# =========================================================================================
+
+
+@jax.jit
+def contact_classification(prob: Array, gt: Array, mask=None, *, threshold: float = 0.5) -> dict[str, Array]:
+    """Accuracy, precision, recall and F1 (%) of the foot-contact labels, pooled over the four
+    points (L heel, L toe, R heel, R toe) and the real frames: a point is predicted in contact
+    when ``prob > threshold``; ``gt`` (..., T, P) holds the {0, 1} labels. Precision (recall) is
+    NaN when nothing is predicted (labelled) in contact; F1 = 2 TP / (2 TP + FP + FN)."""
+    prob = _points(prob, "contact_prob", "T, P")
+    gt = jnp.asarray(gt)
+    _same(prob, gt, "contact_prob", "gt_contacts")
+    m = jnp.broadcast_to(_frame_mask(mask, prob.shape[:-1])[..., None], prob.shape)
+    pr, g = prob > threshold, gt > 0.5
+    axes = (-1, -2)
+
+    def count(x):
+        return jnp.sum((x & m).astype(prob.dtype), axes)
+
+    tp, fp, fn, tn = count(pr & g), count(pr & ~g), count(~pr & g), count(~pr & ~g)
+    return {
+        "accuracy": _pct(tp + tn, tp + tn + fp + fn),
+        "precision": _pct(tp, tp + fp),
+        "recall": _pct(tp, tp + fn),
+        "f1": _pct(2 * tp, 2 * tp + fp + fn),
+    }
+
+
+# =========================================================================================
+# quantities of a motion the metrics read, and the flat evaluation of one clip
+# =========================================================================================
+
+
+def sole_half_width(model: Model) -> float:
+    """Half the width (m) of the character's soles: the largest lateral half-size of the box
+    geoms on the bodies that carry the foot contact sites (0 when there are none). Read from the
+    compiled MuJoCo model, so it follows a rescaled character."""
+    import mujoco
+
+    mj = model.mj
+    bodies = {model.topo.site_body[s] for s in model.topo.contact_sites}
+    sizes = [
+        float(mj.geom_size[g, 1])
+        for g in range(mj.ngeom)
+        if int(mj.geom_bodyid[g]) in bodies and int(mj.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_BOX)
+    ]
+    return max(sizes, default=0.0)
+
+
+def motion_quantities(model: Model, q: Array, fps, layout: str = "body25", half_width=0.0) -> dict[str, Array]:
+    """What the metrics read of a motion ``q`` (T, nq), from the physics (jit/vmap-able; pass the
+    layout as a static argument):
+
+    * ``keypoints3d`` (T, J, 3): the layout's joints (:func:`jmocap.physics.keypoints`);
+    * ``feet`` (T, 4, 3): the foot contact sites (L heel, L toe, R heel, R toe);
+    * ``support`` (T, 8, 3): the sole corners used for the support polygon, each contact site
+      moved by +-``half_width`` along its foot's horizontal lateral axis (the sole is as wide as
+      the foot geoms, :func:`sole_half_width`; with 0 it is the four sites themselves), in the
+      order (site 0 +, site 0 -, site 1 +, ...);
+    * ``zmp`` (T, 2) and ``implied_force`` (T, 3): the zero-moment point and the external force
+      the motion needs (:func:`zero_moment_point`; the latter is the "implied GRF" of [001]
+      Sec. 4.3 for methods that estimate no forces).
+    """
+    q = jnp.asarray(q)
+    sites = model.topo.contact_sites
+    kin = jax.vmap(lambda x: P.forward_kinematics(model, x))(q)
+    kp = jax.vmap(lambda x, k: P.keypoints(model, x, layout, kin=k))(q, kin)
+    feet = jax.vmap(lambda x, k: P.site_positions(model, x, sites, kin=k))(q, kin)
+    bodies = np.asarray(model.topo.site_body)[list(sites)]
+    lateral = safe_normalize(kin.xmat[:, bodies][..., 1].at[..., 2].set(0.0))  # feet's y axes, floor plane
+    hw = jnp.asarray(half_width, q.dtype)
+    support = jnp.stack([feet + hw * lateral, feet - hw * lateral], -2).reshape(q.shape[0], -1, 3)
+    zmp, force = zero_moment_point(model, q, fps)
+    return dict(keypoints3d=kp, feet=feet, support=support, zmp=zmp, implied_force=force)
+
+
+def zero_moment_point(model: Model, q: Array, fps) -> tuple[Array, Array]:
+    """The (fictitious) zero-moment point of a motion ``q`` (T, nq): ``(zmp (T, 2), force (T, 3))``.
+
+    PIP [002] Sec. 4 after Vukobratovic & Borovac 2004. Computed from whole-body dynamics, not
+    from the estimated contact forces: inverse dynamics (:func:`jmocap.physics.inverse_dynamics`,
+    no contact) of the central-difference velocities and accelerations gives the external wrench
+    the motion needs at the root (``tau[:3]``: world force, ``R tau[3:6]``: torque about the
+    root); the ZMP is where that wrench has no horizontal moment (:func:`zmp_from_wrench`). This
+    includes the rate of change of angular momentum, not only the centre-of-mass acceleration.
+    The centre of pressure of *estimated* contact forces lies in the support polygon by
+    construction whenever their normal components are non-negative, so it would measure
+    nothing. ``force`` is the external force needed (``m (c'' - g)``); the ZMP means little where
+    its vertical part is small (flight). Edge frames use one-sided differences: mask them.
+    """
+    qd, qdd = _difference_velocities(model, q, fps)
+    tau = jax.vmap(lambda a, b, c: P.inverse_dynamics(model, a, b, c))(q, qd, qdd)
+    R = quat_to_mat(q[:, 3:7])
+    torque = jnp.einsum("tij,tj->ti", R, tau[:, 3:6])
+    return zmp_from_wrench(tau[:, :3], torque, q[:, :3]), tau[:, :3]
+
+
+class MetricInfo(NamedTuple):
+    """How to present one key of :func:`evaluate_arrays`."""
+
+    label: str
+    unit: str
+    better: str  # "lower" | "higher" | "100" (closest to 100 % is best)
+    source: str  # the paper / table that defines it
+    aggregate: str = "mean"  # how per-clip values combine over clips: "mean" | "max"
+
+
+METRICS: dict[str, MetricInfo] = {
+    "mpjpe_mm": MetricInfo("MPJPE (root-aligned)", "mm", "lower", "[000] Tab. 1"),
+    "pa_mpjpe_mm": MetricInfo("PA-MPJPE", "mm", "lower", "[000] Tab. 1"),
+    "mpjpe_abs_mm": MetricInfo("MPJPE (absolute, world)", "mm", "lower", "[001] Tab. 3"),
+    "pck150_pct": MetricInfo("PCK@150mm (root-aligned)", "%", "higher", "[000] Tab. 1"),
+    "auc_pct": MetricInfo("AUC 0-150mm (root-aligned)", "%", "higher", "[000] Tab. 1"),
+    "pa_pck150_pct": MetricInfo("PCK@150mm (Procrustes)", "%", "higher", "[000] Tab. 1"),
+    "pa_auc_pct": MetricInfo("AUC 0-150mm (Procrustes)", "%", "higher", "[000] Tab. 1"),
+    "root_err_mm": MetricInfo("global root translation error", "mm", "lower", "[000] Tab. 2"),
+    "e_smooth_mm": MetricInfo("e_smooth", "mm", "lower", "[000] eq. 26, Tab. 3"),
+    "sigma_smooth_mm": MetricInfo("sigma_smooth", "mm", "lower", "[000] Tab. 3"),
+    "accel_err_m_s2": MetricInfo("acceleration error", "m/s^2", "lower", "HMMR/VIBE"),
+    "jitter_km_s3": MetricInfo("jitter", "km/s^3", "lower", "[002] Sec. 4"),
+    "reproj_input_px": MetricInfo("reprojection error, input view", "px", "lower", "[000] Tab. 4"),
+    "reproj_input_std_px": MetricInfo("reprojection error std, input view", "px", "lower", "[000] Tab. 4"),
+    "reproj_side_px": MetricInfo("reprojection error, side view", "px", "lower", "[000] Tab. 4"),
+    "reproj_side_std_px": MetricInfo("reprojection error std, side view", "px", "lower", "[000] Tab. 4"),
+    "mpe_mm": MetricInfo("Mean Penetration Error", "mm", "lower", "[000] Tab. 5"),
+    "pnp_pct": MetricInfo("Percentage of Non-Penetration", "%", "higher", "[000] Tab. 5"),
+    "float_pct": MetricInfo("foot floating (>3 cm in contact)", "%", "lower", "[001] Tab. 2"),
+    "penetrate_pct": MetricInfo("foot penetration (>3 cm)", "%", "lower", "[001] Tab. 2"),
+    "skate_pct": MetricInfo("foot skate (>2 cm in contact)", "%", "lower", "[001] Tab. 2"),
+    "grf_mean_pct_bw": MetricInfo("mean GRF", "% BW", "100", "[001] Tab. 2"),
+    "grf_max_pct_bw": MetricInfo("max GRF", "% BW", "lower", "[001] Tab. 2", "max"),
+    "grf_ballistic_pct_bw": MetricInfo("ballistic GRF (median in flight)", "% BW", "lower", "[001] Tab. 2"),
+    "root_residual_pct_bw": MetricInfo("residual root force", "% BW", "lower", "[000] Fig. 4d"),
+    "zmp_dist_m": MetricInfo("ZMP distance to support polygon", "m", "lower", "[002] Sec. 4"),
+    "grf_err_pct_bw": MetricInfo("net GRF error vs ground truth", "% BW", "lower", "jmocap"),
+    "torque_err_nm_kg": MetricInfo("joint torque error vs ground truth", "N m/kg", "lower", "jmocap"),
+    "contact_acc_pct": MetricInfo("contact accuracy", "%", "higher", "[001] Fig. E1"),
+    "contact_prec_pct": MetricInfo("contact precision", "%", "higher", "jmocap"),
+    "contact_rec_pct": MetricInfo("contact recall", "%", "higher", "jmocap"),
+    "contact_f1_pct": MetricInfo("contact F1", "%", "higher", "jmocap"),
+}
+
+
+def _finite(d: Mapping[str, Any], side: str, mask: np.ndarray) -> dict[str, np.ndarray]:
+    """The non-None arrays of ``d`` as numpy, checked finite on the real frames."""
+    out = {}
+    for k, v in d.items():
+        if v is None:
+            continue
+        a = np.asarray(v)
+        if a.ndim and a.shape[0] != mask.shape[0]:
+            raise ValueError(f"{side} {k!r} has {a.shape[0]} frames (shape {a.shape}), the mask {mask.shape[0]}")
+        bad = ~np.isfinite(a[mask]) if a.ndim else ~np.isfinite(a)
+        if bad.any():
+            t = int(np.nonzero(mask)[0][np.argmax(bad.reshape(bad.shape[0], -1).any(1))]) if a.ndim else 0
+            raise ValueError(f"{side} {k!r} has non-finite values, first at frame {t}")
+        out[k] = a
+    return out
+
+
+def evaluate_arrays(
+    pred: Mapping[str, Any],
+    gt: Mapping[str, Any],
+    *,
+    fps: float,
+    mask=None,
+    camera: Camera | None = None,
+    root: tuple[int, ...] = (0,),
+    pred_mass: float | None = None,
+    gt_mass: float | None = None,
+) -> dict[str, float]:
+    """Every applicable metric of one clip as a flat ``{key: float}`` (keys: :data:`METRICS`).
+
+    ``pred`` and ``gt`` map names to per-frame arrays (leading axis T), any of which may be
+    missing or None: ``keypoints3d`` (T, J, 3), ``feet`` (T, 4, 3), ``support`` (T, V, 3),
+    ``zmp`` (T, 2), ``implied_force`` (T, 3) (see :func:`motion_quantities`), ``grf`` (T, 4, 3),
+    ``tau`` (T, nv), and ``contact_prob`` (T, 4) for the prediction / ``contacts`` (T, 4) {0, 1}
+    for the ground truth. ``mask`` (T,) marks real frames; ``camera`` is the input view;
+    ``root`` the root joint indices of the layout; the masses (kg) give the body weights of the
+    estimate's character and of the subject.
+
+    A metric whose inputs are missing is absent from the result, and so is one that is
+    undefined for this clip (e.g. ballistic GRF without flight frames); no value is NaN. Inputs
+    must be finite on the real frames (ValueError naming the array and frame otherwise). Without
+    estimated forces (``grf``), the GRF statistics use ``implied_force``, as [001] does for its
+    kinematic baseline.
+    """
+    T = next(np.asarray(v).shape[0] for v in list(pred.values()) + list(gt.values()) if v is not None)
+    m = np.ones(T, bool) if mask is None else np.asarray(mask, bool)
+    if m.shape != (T,):
+        raise ValueError(f"mask must have shape (T,) = ({T},), got {m.shape}")
+    p, g = _finite(pred, "pred", m), _finite(gt, "gt", m)
+    out: dict[str, Array] = {}
+    pw = None if pred_mass is None else pred_mass * GRAVITY
+    gw = None if gt_mass is None else gt_mass * GRAVITY
+    gt_contacts = g.get("contacts")
+
+    kp, kg = p.get("keypoints3d"), g.get("keypoints3d")
+    if kp is not None and kg is not None:
+        for name, align in (("", "root"), ("pa_", "procrustes")):
+            out[f"{name}mpjpe_mm"] = mpjpe(kp, kg, m, align=align, root=root)
+            out[f"{name}pck150_pct"] = pck(kp, kg, m, align=align, root=root)
+            out[f"{name}auc_pct"] = auc(kp, kg, m, align=align, root=root)
+        out["mpjpe_abs_mm"] = mpjpe(kp, kg, m, align="none")
+        out["root_err_mm"] = root_translation_error(kp, kg, m, root=root)
+        out["e_smooth_mm"], out["sigma_smooth_mm"] = smoothness_error(kp, kg, m)
+        out["accel_err_m_s2"] = acceleration_error(kp, kg, fps, m)
+        if camera is not None:
+            out["reproj_input_px"], out["reproj_input_std_px"] = reprojection_error(kp, kg, camera, m)
+            pivot = _mean(root_position(kg, root).T, jnp.asarray(m)[None], 1)  # mean gt root (3,)
+            side = side_view_camera(camera, pivot)
+            out["reproj_side_px"], out["reproj_side_std_px"] = reprojection_error(kp, kg, side, m)
+    if kp is not None:
+        out["jitter_km_s3"] = jitter(kp, fps, m)
+
+    feet = p.get("feet")
+    if feet is not None:
+        out["pnp_pct"] = non_penetration(feet, m)
+        out["penetrate_pct"] = foot_penetration(feet, m)
+        if gt_contacts is not None:
+            out["mpe_mm"] = mean_penetration_error(feet, gt_contacts, m)
+            out["float_pct"] = foot_floating(feet, gt_contacts, m)
+            out["skate_pct"] = foot_skate(feet, gt_contacts, m)
+
+    forces = p.get("grf")
+    if forces is None and p.get("implied_force") is not None:
+        forces = p["implied_force"][:, None, :]
+    if forces is not None and pw is not None:
+        out["grf_mean_pct_bw"] = grf_mean(forces, pw, m)
+        out["grf_max_pct_bw"] = grf_max(forces, pw, m)
+        if gt_contacts is not None:
+            flight = ~np.any(gt_contacts > 0.5, -1)
+        elif p.get("contact_prob") is not None:
+            flight = ~np.any(p["contact_prob"] > 0.5, -1)
+        else:
+            flight = None
+        if flight is not None:
+            out["grf_ballistic_pct_bw"] = grf_ballistic(forces, pw, flight, m)
+    if p.get("tau") is not None and pw is not None:
+        out["root_residual_pct_bw"] = root_residual(p["tau"], pw, m)
+    if all(p.get(k) is not None for k in ("zmp", "implied_force", "support", "feet")) and pw is not None:
+        support_contacts = jnp.repeat(contact_labels(p["feet"]), p["support"].shape[1] // 4, axis=-1)
+        out["zmp_dist_m"] = zmp_distance(p["zmp"], p["implied_force"][:, 2], pw, p["support"], support_contacts, m)
+    if p.get("grf") is not None and g.get("grf") is not None and pw is not None and gw is not None:
+        out["grf_err_pct_bw"] = grf_error(p["grf"], g["grf"], pw, gw, m)
+    if p.get("tau") is not None and g.get("tau") is not None and pred_mass and gt_mass:
+        out["torque_err_nm_kg"] = torque_error(p["tau"], g["tau"], pred_mass, gt_mass, m)
+    if p.get("contact_prob") is not None and gt_contacts is not None:
+        c = contact_classification(p["contact_prob"], gt_contacts, m)
+        out.update({f"contact_{k}_pct": v for k, v in
+                    (("acc", c["accuracy"]), ("prec", c["precision"]), ("rec", c["recall"]), ("f1", c["f1"]))})
+    values = {k: float(np.asarray(v)) for k, v in out.items()}
+    return {k: values[k] for k in METRICS if k in values and np.isfinite(values[k])}
+
+
+_quantities = jax.jit(motion_quantities, static_argnames="layout")
+
+
+def clip_camera(clip) -> Camera:
+    """The input camera of a :class:`~jmocap.data.clip.Clip` (the pipeline's default extrinsics
+    when the clip has none, as :class:`jmocap.cycle.ClipInputs` assumes)."""
+    from jmocap.cycle import ClipInputs
+
+    inp = ClipInputs.from_clip(clip)
+    return Camera(jnp.asarray(inp.intrinsics), jnp.asarray(inp.image_size), jnp.asarray(inp.extrinsics))
+
+
+def clip_ground_truth(clip, gt_model: Model | None = None) -> tuple[dict[str, Array], float | None]:
+    """The ground truth of a clip as :func:`evaluate_arrays` reads it, and the subject's mass.
+
+    Quantities that need the physics (feet, ZMP, ...) come from ``gt_q`` on ``gt_model``
+    (default: the character scaled to the clip's height and mass)."""
+    from jmocap.model import load_model
+
+    gt: dict[str, Any] = dict(keypoints3d=clip.gt_keypoints3d, grf=clip.gt_grf, tau=clip.gt_tau,
+                              contacts=clip.gt_contacts)
+    mass = clip.mass_kg
+    if clip.gt_q is not None:
+        gt_model = gt_model or load_model(height_m=clip.height_m, mass_kg=clip.mass_kg, with_mjx=False)
+        mass = mass or gt_model.total_mass
+        qty = _quantities(gt_model, jnp.asarray(clip.gt_q), clip.fps, clip.layout, sole_half_width(gt_model))
+        gt = {**qty, **{k: v for k, v in gt.items() if v is not None}}
+    return gt, mass
+
+
+def evaluate_motion(
+    clip,
+    *,
+    q=None,
+    keypoints3d=None,
+    grf=None,
+    tau=None,
+    contact_prob=None,
+    model: Model | None = None,
+    mask=None,
+    gt_model: Model | None = None,
+) -> dict[str, float]:
+    """All applicable metrics (:data:`METRICS`) of an estimate of one clip against the clip's
+    ground truth, as a flat ``{key: float}``; metrics whose inputs are missing are absent.
+
+    The estimate is given by its arrays over the clip's T frames: ``q`` (T, nq) on ``model`` (the
+    character it was reconstructed with; default: scaled to the clip's height, as
+    :mod:`jmocap.evaluate` does), from which keypoints, feet and the ZMP follow, and/or
+    ``keypoints3d`` (T, J, 3) (overrides those of ``q``), ``grf`` (T, 4, 3), ``tau`` (T, nv),
+    ``contact_prob`` (T, 4). A :class:`~jmocap.motion.Motion` gives them all:
+    ``evaluate_motion(clip, q=m.q, grf=m.grf, tau=m.tau, contact_prob=m.contact_prob, model=...)``.
+    """
+    from jmocap.model import load_model
+
+    pred: dict[str, Any] = dict(grf=grf, tau=tau, contact_prob=contact_prob)
+    pred_mass = None
+    if q is not None:
+        model = model or load_model(height_m=clip.height_m, with_mjx=False)
+        q = _points(q, "q", f"T, {model.nq}")
+        if q.shape[0] != clip.num_frames:
+            raise ValueError(f"q has {q.shape[0]} frames, clip {clip.name!r} has {clip.num_frames}")
+        pred.update(_quantities(model, q, clip.fps, clip.layout, sole_half_width(model)))
+    if model is not None:
+        pred_mass = model.total_mass
+    if keypoints3d is not None:
+        pred["keypoints3d"] = keypoints3d
+    gt, gt_mass = clip_ground_truth(clip, gt_model)
+    return evaluate_arrays(pred, gt, fps=clip.fps, mask=mask, camera=clip_camera(clip),
+                           root=clip.layout_spec.root_indices, pred_mass=pred_mass, gt_mass=gt_mass)
