@@ -304,5 +304,40 @@ def cmd_render(args) -> int:
     return 0
 
 
+# =========================================================================================
+# jmocap eval
+# =========================================================================================
+
+
+@command("eval", "evaluate methods on an archive of clips with ground truth (one table of every metric)")
+def _eval(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Reconstruct every clip of an archive with each method (the full pipeline, its ablations, "
+        "the kinematic target and the ground truth itself) and write OUT/metrics.md, .csv and "
+        ".json with every metric of jmocap.metrics per method (docs/evaluation.md)."
+    )
+    p.add_argument("archive", help="archive of clips with ground truth (folder, .zip or .tar)")
+    p.add_argument("--methods", nargs="+", metavar="METHOD",
+                   help="methods (default: all): kinematic physionical fixed_gains no_grfnet "
+                        "no_hard_constraint no_canonicalisation ground_truth")
+    p.add_argument("--params", help="parameters (.msgpack); default: the shipped weights")
+    p.add_argument("--random-init", action="store_true",
+                   help="freshly initialised parameters (seeded): smoke tests of the harness only")
+    p.add_argument("--method-params", action="append", default=[], metavar="METHOD=PATH",
+                   help="a method's own parameters, e.g. no_canonicalisation=runs/nocano/params.msgpack")
+    p.add_argument("--out", default="out/eval", help="output folder (default out/eval)")
+    p.add_argument("--max-clips", type=int, help="evaluate a seeded random subset of this many clips")
+    p.add_argument("--seed", type=int, default=0, help="seed of the clip subset and random init (default 0)")
+    p.add_argument("--batch-size", type=int, default=8, help="clips per compiled batch (default 8)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_eval)
+
+
+def cmd_eval(args) -> int:
+    from jmocap.evaluate import cmd_eval as run
+
+    return run(args)
+
+
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,0 +1,525 @@
+"""The evaluation harness: run methods over an archive of clips with ground truth and tabulate
+every metric of :mod:`jmocap.metrics` per method (``jmocap eval``).
+
+Methods are the full pipeline, its ablations and two references, each a
+``dataclasses.replace`` of the base :class:`~jmocap.cycle.CycleConfig` (:data:`METHODS`):
+
+=====================  =====================================================================
+``kinematic``          TPNet's target pose alone (``kinematic_only=True``)
+``physionical``        the full pipeline
+``fixed_gains``        no DyNet: PD gains fixed at k_p_ini (``use_dynet=False``, PhysCap-like)
+``no_grfnet``          no contact forces (``use_grfnet=False``)
+``no_hard_constraint`` no foot-floor projection (``hard_constraint=False``)
+``no_canonicalisation`` C_T reads K_rr instead of K_c (``canonicalise=False``); the paper
+                       retrains for this ablation: give it its own weights (``method_params``)
+``ground_truth``       the clip's ground-truth arrays through the same metrics (sanity row)
+=====================  =====================================================================
+
+Reconstruction is :func:`jmocap.cycle.reconstruct`, ``vmap``-ed over a batch of clips padded to
+one common length (the frame mask marks real frames) and jitted with the config static, so each
+method compiles once; every clip is reconstructed with the character scaled to its
+``height_m`` (scaled copies share a topology, so they stack into one batched model pytree).
+The result is a deterministic function of the archive, the parameters and the seed (which
+picks the clips when ``max_clips`` is below the archive size).
+
+Per clip, :func:`jmocap.metrics.evaluate_arrays` gives a flat dict; a method's value of a
+metric is the mean over the clips that have it (the max for ``grf_max_pct_bw``): every clip
+counts equally. A clip whose estimate is not finite is recorded as failed and skipped.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import functools
+import io
+import json
+import os
+from collections.abc import Callable, Collection, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from jmocap import metrics as M
+from jmocap.cycle import ClipInputs, CycleConfig, init_params, reconstruct
+from jmocap.data.archive import Archive
+from jmocap.data.clip import Clip
+from jmocap.model import Model, load_model
+
+# method name -> CycleConfig fields changed from the full pipeline (None: ground truth)
+METHODS: dict[str, dict[str, Any] | None] = {
+    "kinematic": {"kinematic_only": True},
+    "physionical": {},
+    "fixed_gains": {"use_dynet": False},
+    "no_grfnet": {"use_grfnet": False},
+    "no_hard_constraint": {"hard_constraint": False},
+    "no_canonicalisation": {"canonicalise": False},
+    "ground_truth": None,
+}
+FULL_PIPELINE = dict(kinematic_only=False, use_dynet=True, use_grfnet=True, hard_constraint=True,
+                     canonicalise=True)
+
+
+def method_config(base: CycleConfig, method: str) -> CycleConfig | None:
+    """The config of ``method``: ``base`` with the full pipeline's switches, then the
+    method's change (None for ``ground_truth``)."""
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; known: {', '.join(METHODS)}")
+    change = METHODS[method]
+    return None if change is None else dataclasses.replace(base, **{**FULL_PIPELINE, **change})
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    methods: tuple[str, ...] = tuple(METHODS)
+    batch_size: int = 8
+    max_clips: int | None = None
+    seed: int = 0
+    progress: bool = True
+
+
+@dataclass
+class EvalResult:
+    """Per-method aggregates, per-clip metrics, failures and (for requested clips) the motions."""
+
+    archive: str
+    clips: list[str]
+    methods: tuple[str, ...]
+    summary: dict[str, dict[str, float]]  # method -> metric -> value over clips
+    counts: dict[str, dict[str, int]]  # method -> metric -> number of clips with a value
+    per_clip: dict[str, dict[str, dict[str, float]]]  # method -> clip -> metric -> value
+    failures: list[dict[str, str]] = field(default_factory=list)
+    motions: dict[str, dict[str, dict[str, np.ndarray]]] = field(default_factory=dict)
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------
+# parameters
+# ---------------------------------------------------------------------------------------
+
+
+def load_method_params(path: str | os.PathLike) -> tuple[dict, CycleConfig]:
+    """Parameters from a msgpack file and the CycleConfig they were trained with: read from a
+    ``config.json`` next to the file (a training run's, key ``cycle``) or ``<name>.json``;
+    the default CycleConfig when neither exists."""
+    from jmocap.weights import cycle_config_from_json, load_params
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no parameter file {path}")
+    params = load_params(path)
+    for cand in (path.with_suffix(".json"), path.parent / "config.json"):
+        if cand.is_file():
+            d = json.loads(cand.read_text())
+            if isinstance(d, dict) and "cycle" in d:
+                return params, cycle_config_from_json(d["cycle"])
+    return params, CycleConfig()
+
+
+def random_params(seed: int, config: CycleConfig | None = None) -> dict:
+    """Freshly initialised parameters (smoke tests of the harness; not a method)."""
+    return init_params(jax.random.PRNGKey(seed), load_model(with_mjx=False), config or CycleConfig())
+
+
+# ---------------------------------------------------------------------------------------
+# clips and batches
+# ---------------------------------------------------------------------------------------
+
+
+def select_clips(archive: str | os.PathLike, max_clips: int | None = None, seed: int = 0) -> list[Clip]:
+    """The archive's clips (manifest order); with ``max_clips`` a seeded random subset of them,
+    still in archive order."""
+    with Archive(archive) as a:
+        names = a.names()
+        if max_clips is not None and max_clips < len(names):
+            pick = np.sort(np.random.default_rng(seed).choice(len(names), max_clips, replace=False))
+            names = [names[i] for i in pick]
+        return [a.load(n) for n in names]
+
+
+@functools.lru_cache(maxsize=256)
+def _model(height_m: float | None, mass_kg: float | None) -> Model:
+    if height_m is None and mass_kg is None:
+        return load_model(with_mjx=False)
+    return load_model(height_m=height_m, mass_kg=mass_kg, with_mjx=False)
+
+
+def estimate_model(clip: Clip) -> Model:
+    """The character a clip is reconstructed with: scaled to the clip's height (the mass is the
+    character's own: a video does not tell it)."""
+    return _model(clip.height_m, None)
+
+
+def subject_model(clip: Clip) -> Model:
+    """The subject's character: the clip's height and mass (the ground truth's)."""
+    return _model(clip.height_m, clip.mass_kg)
+
+
+def _stack(trees):
+    return jax.tree.map(lambda *xs: np.stack(xs), *trees)
+
+
+def _pad_edge(a: np.ndarray, length: int) -> np.ndarray:
+    """Frames padded to ``length`` by repeating the last one (finite, physically harmless)."""
+    a = np.asarray(a)
+    return np.concatenate([a, np.repeat(a[-1:], length - a.shape[0], 0)]) if a.shape[0] < length else a
+
+
+@dataclass
+class _Batch:
+    clips: list[Clip]  # the real clips (the batch may be padded with repeats of the last)
+    inputs: ClipInputs  # (B, L, ...)
+    models: Model  # batched estimate models
+    gt: dict[str, np.ndarray]  # (B, L, ...) ground truth, incl. derived quantities
+    half_width: np.ndarray  # (B,) sole half-width of the estimate models
+
+
+@functools.lru_cache(maxsize=8)
+def _batched_quantities(layout: str) -> Callable:
+    def quantities(model, q, fps, half_width):
+        return M.motion_quantities(model, q, fps, layout, half_width)
+
+    return jax.jit(jax.vmap(quantities))
+
+
+@functools.lru_cache(maxsize=1)
+def _batched_reconstruct() -> Callable:
+    return jax.jit(jax.vmap(reconstruct, in_axes=(None, 0, 0, None)), static_argnums=3)
+
+
+def _prepare(clips: list[Clip], length: int, size: int) -> _Batch:
+    padded = clips + [clips[-1]] * (size - len(clips))
+    inputs = _stack([ClipInputs.from_clip(c, length) for c in padded])
+    models = _stack([estimate_model(c) for c in padded])
+    subjects = [subject_model(c) for c in padded]
+    fps = np.array([c.fps for c in padded], np.float32)
+    layout = padded[0].layout
+    gt_q = np.stack([_pad_edge(c.gt_q, length) for c in padded]).astype(np.float32)
+    gt_hw = np.array([M.sole_half_width(m) for m in subjects], np.float32)
+    gt = {k: np.asarray(v) for k, v in _batched_quantities(layout)(_stack(subjects), gt_q, fps, gt_hw).items()}
+    gt["keypoints3d"] = np.stack([_pad_edge(c.gt_keypoints3d, length) for c in padded])  # the clip's own
+    for key, fld in (("grf", "gt_grf"), ("tau", "gt_tau"), ("contacts", "gt_contacts")):
+        if all(getattr(c, fld) is not None for c in padded):
+            gt[key] = np.stack([_pad_edge(getattr(c, fld), length) for c in padded])
+    hw = np.array([M.sole_half_width(estimate_model(c)) for c in padded], np.float32)
+    return _Batch(clips, inputs, models, gt, hw)
+
+
+def _evaluate_clip(clip: Clip, i: int, pred: dict, gt: dict, length: int, pred_mass: float) -> dict[str, float]:
+    mask = np.arange(length) < clip.num_frames
+    g = {k: v[i] for k, v in gt.items()}
+    return M.evaluate_arrays(
+        pred, g, fps=clip.fps, mask=mask, camera=M.clip_camera(clip), root=clip.layout_spec.root_indices,
+        pred_mass=pred_mass, gt_mass=clip.mass_kg or subject_model(clip).total_mass,
+    )
+
+
+def _ground_truth_pred(gt_i: dict) -> dict:
+    p = dict(gt_i)
+    if "contacts" in p:
+        p["contact_prob"] = p.pop("contacts")
+    return p
+
+
+# ---------------------------------------------------------------------------------------
+# the harness
+# ---------------------------------------------------------------------------------------
+
+
+def evaluate(
+    archive: str | os.PathLike,
+    params: dict | None,
+    base: CycleConfig | None = None,
+    config: EvalConfig | None = None,
+    *,
+    method_params: dict[str, tuple[dict, CycleConfig]] | None = None,
+    keep_motions: Collection[str] = (),
+    clips: Sequence[Clip] | None = None,
+) -> EvalResult:
+    """Run ``config.methods`` over the archive's clips (or ``clips``) and compute every metric.
+
+    ``params`` and ``base`` are the shared weights and the config they were trained with
+    (default: ``CycleConfig()``); ``config`` the harness settings (default ``EvalConfig()``);
+    ``method_params`` gives a method its own ``(params, config)`` (e.g. ``no_canonicalisation``
+    trained without canonicalisation). ``keep_motions`` names clips whose estimated arrays
+    (``q``, ``grf``, ``tau``, ``contact_prob``) are kept in ``result.motions[method][clip]``.
+    Clips need ``gt_q`` and ``gt_keypoints3d`` (others are skipped and recorded as failures).
+    """
+    from tqdm import tqdm
+
+    base = base or CycleConfig()
+    config = config or EvalConfig()
+    for m in config.methods:
+        method_config(base, m)  # validates the name
+    if config.batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {config.batch_size}")
+    clips = list(clips) if clips is not None else select_clips(archive, config.max_clips, config.seed)
+    failures: list[dict[str, str]] = []
+    usable = []
+    for c in clips:
+        why = None
+        if c.gt_q is None or c.gt_keypoints3d is None:
+            why = "no ground truth (gt_q, gt_keypoints3d)"
+        elif c.layout != base.layout:
+            why = f"layout {c.layout!r}, the methods read {base.layout!r}"
+        if why:
+            failures.append({"method": "*", "clip": c.name, "error": why})
+        else:
+            usable.append(c)
+    if not usable:
+        raise ValueError(f"{archive}: no clip with ground truth to evaluate")
+    length = max(c.num_frames for c in usable)
+    B = min(config.batch_size, len(usable))
+    batches = [_prepare(usable[i : i + B], length, B) for i in range(0, len(usable), B)]
+
+    per_clip: dict[str, dict[str, dict[str, float]]] = {m: {} for m in config.methods}
+    motions: dict[str, dict[str, dict[str, np.ndarray]]] = {}
+    bar = tqdm(total=len(config.methods) * len(batches), disable=not config.progress, unit="batch")
+    for method in config.methods:
+        bar.set_description(method)
+        cfg = method_config(base, method)
+        m_params = params
+        if method_params and method in method_params:
+            m_params, own = method_params[method]
+            cfg = method_config(own, method)
+        if cfg is not None and m_params is None:
+            raise ValueError(f"method {method!r} needs parameters")
+        for batch in batches:
+            try:
+                preds = _predict(m_params, batch, cfg, length)
+            except Exception as e:  # a batch run records the failure and goes on (DESIGN)
+                failures += [{"method": method, "clip": c.name, "error": f"{type(e).__name__}: {e}"}
+                             for c in batch.clips]
+                bar.update(1)
+                continue
+            for i, clip in enumerate(batch.clips):
+                pred, mass = preds[i]
+                try:
+                    per_clip[method][clip.name] = _evaluate_clip(clip, i, pred, batch.gt, length, mass)
+                except ValueError as e:
+                    failures.append({"method": method, "clip": clip.name, "error": str(e)})
+                if clip.name in keep_motions:
+                    T = clip.num_frames
+                    motions.setdefault(method, {})[clip.name] = {
+                        k: np.asarray(v)[:T] for k, v in pred.items()
+                        if k in ("q", "grf", "tau", "contact_prob", "keypoints3d")
+                    }
+            bar.update(1)
+    bar.close()
+    summary, counts = aggregate(per_clip)
+    info = {
+        "frames": int(sum(c.num_frames for c in usable)),
+        "padded_length": length,
+        "batch_size": B,
+        "base_config": dataclasses.asdict(base),
+        "method_configs": {m: (None if method_config(base, m) is None else
+                               {k: getattr(method_config(base, m), k) for k in FULL_PIPELINE})
+                           for m in config.methods},
+        "own_params": sorted(method_params or {}),
+        "seed": config.seed,
+    }
+    return EvalResult(str(archive), [c.name for c in usable], tuple(config.methods), summary, counts,
+                      per_clip, failures, motions, info)
+
+
+def _predict(params, batch: _Batch, cfg: CycleConfig | None, length: int) -> list[tuple[dict, float]]:
+    """Per real clip of the batch: (the arrays evaluate_arrays reads, the estimate's mass)."""
+    n = len(batch.clips)
+    if cfg is None:  # ground truth through the metrics
+        return [(_ground_truth_pred({k: v[i] for k, v in batch.gt.items()}),
+                 c.mass_kg or subject_model(c).total_mass) for i, c in enumerate(batch.clips)]
+    motion = _batched_reconstruct()(params, batch.models, batch.inputs, cfg)
+    q = np.asarray(motion.q)
+    if not np.all(np.isfinite(q)):  # keep the quantities finite; evaluate_arrays reports the clip
+        q = np.where(np.isfinite(q), q, 0.0)
+    qty = _batched_quantities(batch.clips[0].layout)(batch.models, q, np.asarray(batch.inputs.fps),
+                                                   batch.half_width)
+    out = []
+    for i, clip in enumerate(batch.clips[:n]):
+        pred = {k: np.asarray(v[i]) for k, v in qty.items()}
+        pred["q"] = np.asarray(motion.q[i])
+        pred["contact_prob"] = np.asarray(motion.contact_prob[i])
+        if not cfg.kinematic_only:  # the kinematic pipeline estimates no forces
+            pred["grf"] = np.asarray(motion.grf[i])
+            pred["tau"] = np.asarray(motion.tau[i])
+        out.append((pred, estimate_model(clip).total_mass))
+    return out
+
+
+def aggregate(per_clip: dict[str, dict[str, dict[str, float]]]):
+    """Per method and metric: the mean (or, for ``aggregate="max"`` metrics, the max) over the
+    clips that have the metric, and how many clips that is."""
+    summary: dict[str, dict[str, float]] = {}
+    counts: dict[str, dict[str, int]] = {}
+    for method, clips in per_clip.items():
+        summary[method], counts[method] = {}, {}
+        for key, info in M.METRICS.items():
+            vals = [r[key] for r in clips.values() if key in r]
+            if vals:
+                summary[method][key] = float(np.max(vals) if info.aggregate == "max" else np.mean(vals))
+                counts[method][key] = len(vals)
+    return summary, counts
+
+
+# ---------------------------------------------------------------------------------------
+# output
+# ---------------------------------------------------------------------------------------
+
+_ARROW = {"lower": "↓", "higher": "↑", "100": "→100"}
+
+
+def _fmt(v: float | None) -> str:
+    if v is None:
+        return "–"
+    return f"{v:.1f}" if abs(v) >= 100 else f"{v:.2f}" if abs(v) >= 1 else f"{v:.3g}"
+
+
+def markdown_table(result: EvalResult) -> str:
+    """One table: a row per metric (label, unit, which way is better, source), a column per method."""
+    methods = result.methods
+    head = "| metric | unit | | source | " + " | ".join(f"`{m}`" for m in methods) + " |"
+    sep = "|---|---|---|---|" + "---:|" * len(methods)
+    rows = [head, sep]
+    for key, info in M.METRICS.items():
+        vals = [result.summary.get(m, {}).get(key) for m in methods]
+        if all(v is None for v in vals):
+            continue
+        rows.append(f"| {info.label} | {info.unit} | {_ARROW[info.better]} | {info.source} | "
+                    + " | ".join(_fmt(v) for v in vals) + " |")
+    n = [len(result.per_clip.get(m, {})) for m in methods]
+    rows.append("| clips evaluated | | | | " + " | ".join(str(k) for k in n) + " |")
+    return "\n".join(rows) + "\n"
+
+
+def markdown_report(result: EvalResult, title: str = "jmocap evaluation") -> str:
+    lines = [
+        f"# {title}", "",
+        f"Archive `{result.archive}`: {len(result.clips)} clips, {result.info.get('frames', 0)} frames; "
+        f"seed {result.info.get('seed')}.", "",
+        markdown_table(result), "",
+        "Values are means over clips (max GRF: the max); – = not applicable (the method "
+        "estimates no such quantity, or its inputs are missing). The kinematic method estimates no "
+        "forces: its GRF statistics are the forces its motion implies (inverse dynamics), as "
+        "Rempe et al. report for their kinematic baseline. Definitions: docs/evaluation.md.",
+    ]
+    if result.info.get("own_params"):
+        lines += ["", "Methods with their own weights: " + ", ".join(result.info["own_params"]) + "."]
+    if result.failures:
+        lines += ["", f"{len(result.failures)} failures (clip skipped for that method):", ""]
+        lines += [f"- `{f['method']}` / `{f['clip']}`: {f['error']}" for f in result.failures[:20]]
+    return "\n".join(lines) + "\n"
+
+
+def csv_table(result: EvalResult) -> str:
+    buf = io.StringIO()
+    keys = [k for k in M.METRICS if any(k in result.summary.get(m, {}) for m in result.methods)]
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["method", "clips", *keys])
+    for m in result.methods:
+        s = result.summary.get(m, {})
+        w.writerow([m, len(result.per_clip.get(m, {})), *(repr(s[k]) if k in s else "" for k in keys)])
+    return buf.getvalue()
+
+
+def result_json(result: EvalResult) -> dict:
+    return {
+        "archive": result.archive,
+        "clips": result.clips,
+        "methods": list(result.methods),
+        "summary": result.summary,
+        "counts": result.counts,
+        "per_clip": result.per_clip,
+        "failures": result.failures,
+        "metrics": {k: v._asdict() for k, v in M.METRICS.items()},
+        "info": result.info,
+    }
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    from jmocap.data.archive import _atomic_write as write
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write(path, text.encode())
+
+
+def write_outputs(result: EvalResult, out: str | os.PathLike, title: str = "jmocap evaluation") -> list[Path]:
+    """``out/metrics.md``, ``out/metrics.csv``, ``out/metrics.json`` (each written atomically)."""
+    out = Path(out)
+    files = [(out / "metrics.md", markdown_report(result, title)), (out / "metrics.csv", csv_table(result)),
+             (out / "metrics.json", json.dumps(result_json(result), indent=1, sort_keys=False) + "\n")]
+    for path, text in files:
+        _atomic_write(path, text)
+    return [p for p, _ in files]
+
+
+# ---------------------------------------------------------------------------------------
+# command line (registered in jmocap.cli)
+# ---------------------------------------------------------------------------------------
+
+
+def resolve_params(args) -> tuple[dict, CycleConfig, str]:
+    """(params, config, description) from --params / --random-init / the shipped weights."""
+    if args.params and args.random_init:
+        raise ValueError("--params and --random-init exclude each other")
+    if args.random_init:
+        return random_params(args.seed), CycleConfig(), f"random init (seed {args.seed})"
+    if args.params:
+        params, cfg = load_method_params(args.params)
+        return params, cfg, str(args.params)
+    from jmocap.weights import default_params
+
+    params, cfg = default_params()
+    return params, cfg, "shipped default weights"
+
+
+def cmd_eval(args) -> int:
+    import sys
+
+    from jmocap.data.archive import ArchiveError
+
+    try:
+        methods = tuple(m for item in (args.methods or METHODS) for m in item.split(",") if m)
+        for m in methods:
+            method_config(CycleConfig(), m)
+        if args.max_clips is not None and args.max_clips < 1:
+            raise ValueError("--max-clips must be >= 1")
+        params, base, source = resolve_params(args)
+        own = {}
+        for item in args.method_params:
+            name, _, path = item.partition("=")
+            if name not in METHODS or not path:
+                raise ValueError(f"--method-params expects METHOD=PATH with a known method, got {item!r}")
+            own[name] = load_method_params(path)
+        cfg = EvalConfig(methods, args.batch_size, args.max_clips, args.seed, not args.quiet)
+        result = evaluate(args.archive, params, base, cfg, method_params=own)
+    except (ValueError, FileNotFoundError, ArchiveError) as e:
+        print(f"jmocap eval: {e}", file=sys.stderr)
+        return 1
+    result.info["params"] = source
+    paths = write_outputs(result, args.out)
+    print(f"jmocap eval: {len(result.clips)} clips x {len(methods)} methods ({source}), "
+          f"{len(result.failures)} failures -> " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+__all__ = [
+    "FULL_PIPELINE",
+    "METHODS",
+    "EvalConfig",
+    "EvalResult",
+    "aggregate",
+    "cmd_eval",
+    "csv_table",
+    "evaluate",
+    "load_method_params",
+    "markdown_report",
+    "markdown_table",
+    "method_config",
+    "random_params",
+    "result_json",
+    "select_clips",
+    "write_outputs",
+]
