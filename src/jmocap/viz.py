@@ -1,23 +1,25 @@
 """Visualisation of a reconstruction: offscreen MuJoCo video and force plots.
 
 * :func:`render` writes an MP4 or GIF of a motion: the humanoid rendered offscreen by
-  ``mujoco.Renderer`` from the model's ``front`` and ``side`` cameras (side by side), ground
-  reaction force arrows at the foot contact points, the foot segment of every contact point
-  whose contact probability exceeds 0.5 in red and, given 2D keypoints and the input camera, a third panel
-  rendered from the input camera's exact viewpoint with the 2D keypoints drawn over it (a
-  reconstruction that explains its input puts the humanoid under the detections).
-  :func:`render_frames` yields the same frames as arrays.
+  ``mujoco.Renderer`` from the model's ``front`` and ``side`` cameras (side by side), one
+  ground reaction force arrow per foot, in red the foot segments whose contact probability
+  exceeds 0.5 and, given 2D keypoints and the input camera, a third panel rendered from the
+  input camera's exact viewpoint with the 2D keypoints drawn over it (a reconstruction that
+  explains its input puts the humanoid under the detections). :func:`render_frames` yields
+  the same frames as arrays.
 * :func:`plot_forces` writes a PNG of the vertical GRF per foot and joint torques over time,
   after paper 000 (Shimada et al. 2021), Fig. 4 (vertical GRF, knee and ankle torques, the
   residual root force in body weights).
 * :func:`render_result` does both for a result ``.npz`` (the ``jmocap render`` command).
 
-Headless OpenGL: MuJoCo picks its OpenGL backend from ``MUJOCO_GL`` when ``mujoco`` is first
-imported (GLFW when unset, which needs a display). This module sets ``MUJOCO_GL=egl`` if it is
-unset and ``mujoco`` is not imported yet; either way, :func:`open_renderer` creates the
-renderer with EGL, then OSMesa, unless ``MUJOCO_GL`` names another backend (the user's
-choice, e.g. ``glfw`` on a desktop), and raises :class:`RenderError` naming the system
-packages to install when none works.
+Headless OpenGL: MuJoCo picks its OpenGL backend from ``MUJOCO_GL`` once, when ``mujoco`` is
+imported (GLFW when unset, which needs a display and, failing, can leave the process unable to
+render). This module sets ``MUJOCO_GL=egl`` if it is unset and ``mujoco`` is not imported yet;
+as ``import jmocap`` has usually imported it already, :func:`open_renderer` also installs the
+EGL (then OSMesa) context class for the renderer it creates, unless ``MUJOCO_GL`` names another
+backend (the user's choice, e.g. ``glfw`` on a desktop). It raises :class:`RenderError` naming
+the system packages to install when nothing works. (The in-process fall-back to OSMesa is best
+effort; on a machine without EGL set ``MUJOCO_GL=osmesa``.)
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ __all__ = [
 
 DEFAULT_SIZE = (320, 240)  # per view (width, height)
 FORCE_SCALE_M_PER_BW = 0.5  # arrow length of a force of one body weight
-ARROW_RGBA = np.array([1.0, 0.75, 0.0, 1.0], np.float32)
+ARROW_RGBA = np.array([0.1, 0.85, 0.1, 1.0], np.float32)  # green: unlike skin, floor, red feet
 CONTACT_RGBA = np.array([0.9, 0.05, 0.05, 1.0], np.float32)
 KEYPOINT_RGB = (0, 230, 255)
 BONE_RGB = (255, 255, 255)
@@ -163,7 +165,7 @@ def _foot_forces(points: np.ndarray, forces: np.ndarray):
     return out
 
 
-def _pinhole_fit(intrinsics, image_size, W: int, H: int):
+def _pinhole_fit(image_size, W: int, H: int):
     """Uniform scale k and offset (ox, oy) placing the input image centred in a W x H panel."""
     Wi, Hi = float(image_size[0]), float(image_size[1])
     k = min(W / Wi, H / Hi)
@@ -179,7 +181,7 @@ def _set_pinhole(scene: mujoco.MjvScene, intrinsics, image_size, extrinsics, W: 
     aspect, which matches exactly when fx = fy (otherwise the vertical scale wins).
     """
     fx, fy, cx, cy = (float(v) for v in intrinsics)
-    k, ox, oy = _pinhole_fit(intrinsics, image_size, W, H)
+    k, ox, oy = _pinhole_fit(image_size, W, H)
     R = np.asarray(extrinsics, np.float64)[:3, :3]
     t = np.asarray(extrinsics, np.float64)[:3, 3]
     n, far = 0.05, 100.0
@@ -248,15 +250,62 @@ def _layout_bones(model: Model, layout: Layout) -> list[tuple[int, int]]:
     return bones
 
 
-def _draw_overlay(img: np.ndarray, points: np.ndarray | None, bones, labels: Sequence[str]) -> np.ndarray:
-    """Draw 2D keypoints (J, 3: panel x, y, confidence) and text labels onto an image."""
+def _gl_project(scene: mujoco.MjvScene, points: np.ndarray, W: int, H: int) -> tuple[np.ndarray, np.ndarray]:
+    """Panel pixels (N, 2) and depths (N,) of world points, as ``mjr_render`` projects them.
+
+    MuJoCo renders a mono image from the average of the scene's two eye cameras (they sit
+    +-ipd/2 apart even in mono), through a frustum with the camera's bottom/top at the near
+    plane and a horizontal extent set by the panel's aspect around ``frustum_center``.
+    """
+    cam = mujoco.mjv_averageCamera(scene.camera[0], scene.camera[1])
+    pos = np.asarray(cam.pos, np.float64)
+    fwd = np.asarray(cam.forward, np.float64)
+    up = np.asarray(cam.up, np.float64)
+    rel = np.asarray(points, np.float64) - pos
+    z = rel @ fwd
+    x, y = rel @ np.cross(fwd, up), rel @ up
+    half_h = 0.5 * (cam.frustum_top - cam.frustum_bottom)
+    half_w = half_h * W / H
+    if not cam.orthographic:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x, y = cam.frustum_near * x / z, cam.frustum_near * y / z
+    u = (1.0 + (x - cam.frustum_center) / half_w) * W / 2
+    v = (1.0 - (y - 0.5 * (cam.frustum_top + cam.frustum_bottom)) / half_h) * H / 2
+    return np.stack([u, v], -1), z
+
+
+def _draw_overlay(
+    img: np.ndarray, points: np.ndarray | None, bones, labels: Sequence[str], arrows=(), frame=None
+) -> np.ndarray:
+    """Draw onto an image: force arrows ((2, 2) panel pixels, base and tip) as translucent
+    outlines over everything (so that the parts hidden in a leg show), the input image's
+    bounds ``frame`` (x0, y0, x1, y1), 2D keypoints (J, 3: panel x, y, confidence) with their
+    bones, and text labels."""
     from PIL import Image, ImageDraw
 
     im = Image.fromarray(img)
-    draw = ImageDraw.Draw(im)
     H = img.shape[0]
+    if len(arrows):
+        layer = Image.new("RGBA", im.size, (0, 0, 0, 0))
+        ghost = ImageDraw.Draw(layer)
+        colour = tuple(int(255 * c) for c in ARROW_RGBA[:3]) + (150,)
+        lw = max(1, round(H / 120))
+        for base, tip in arrows:
+            d = tip - base
+            n = float(np.hypot(*d))
+            if not np.isfinite(n) or n < 1.0:
+                continue
+            e, side = d / n, np.array([-d[1], d[0]]) / n
+            head = min(0.35 * n, max(3.0, H / 40))
+            neck = tip - head * e
+            ghost.line([tuple(base), tuple(neck)], fill=colour, width=lw)
+            ghost.polygon([tuple(tip), tuple(neck + 0.5 * head * side), tuple(neck - 0.5 * head * side)], fill=colour)
+        im = Image.alpha_composite(im.convert("RGBA"), layer).convert("RGB")
+    draw = ImageDraw.Draw(im)
+    if frame is not None:
+        draw.rectangle(frame, outline=(110, 110, 110))
     if points is not None:
-        ok = points[:, 2] > 0
+        ok = (points[:, 2] > 0) & np.isfinite(points).all(1)
         lw = max(1, round(H / 200))
         for i, j in bones:
             if ok[i] and ok[j]:
@@ -311,16 +360,21 @@ def render_frames(
     quality: str = "fast",
     fps: float | None = None,
 ) -> Iterator[np.ndarray]:
-    """Yield one RGB frame (H, W * number of views, 3) uint8 per frame of ``q`` (T, nq).
+    """An iterator of RGB frames (H, W * number of views, 3) uint8, one per frame of ``q``.
+
+    The arguments are checked before the iterator is returned (``ValueError``); the renderer
+    is opened on the first frame and closed when the iterator is exhausted or closed.
 
     Args:
       model: the character (its ``mj`` model is rendered, as the MJCF draws it).
       q: (T, nq) configurations.
       grf: optional (T, 4, 3) world-frame contact forces at the four contact sites (left heel,
-        left toe, right heel, right toe), drawn per foot: an arrow of the foot's resultant
-        force (heel + toe) from its centre of pressure between the two sites (points inside
-        the foot would hide per-site arrows in the leg), ``force_scale`` metres per body
-        weight (``model.total_mass * |g|``); forces under 1 % of body weight are not drawn.
+        left toe, right heel, right toe), drawn per foot: a green arrow of the foot's
+        resultant force (heel + toe) from its centre of pressure between the two sites,
+        ``force_scale`` metres per body weight (``model.total_mass * |g|``); forces under 1 %
+        of body weight are not drawn. Each arrow is a 3D geom in the scene plus a translucent
+        outline over the image, since the centre of pressure is often under the shank and the
+        arrow inside the leg.
       contacts: optional (T, 4) contact probabilities; a contact with probability > 0.5 turns
         the foot segment carrying its site red (the hindfoot for a heel, the toes for a toe).
         The contact sites lie on the sole, inside the foot geoms, where a sphere marker would
@@ -379,7 +433,7 @@ def render_frames(
         extr = np.asarray(camera.extrinsics, np.float64)
         if intr.shape != (4,) or isize.shape != (2,) or extr.shape != (4, 4):
             raise ValueError(f"{where}: camera must be unbatched, got intrinsics {intr.shape}")
-        k, ox, oy = _pinhole_fit(intr, isize, W, H)
+        k, ox, oy = _pinhole_fit(isize, W, H)
     bones: list[tuple[int, int]] = []
     if kp is not None:
         lay = get_layout(layout) if layout is not None else (get_layout("body25") if kp.shape[1] == 25 else None)
@@ -388,59 +442,71 @@ def render_frames(
                 raise ValueError(f"{where}: keypoints2d have {kp.shape[1]} joints, layout {lay.name!r} has {lay.num_joints}")
             bones = _layout_bones(model, lay)
 
+    if not (math.isfinite(force_scale) and force_scale > 0):
+        raise ValueError(f"{where}: force_scale must be positive, got {force_scale}")
     weight = model.total_mass * float(np.linalg.norm(model.gravity))
     scale = float(force_scale) / weight
     arrow_w = 0.01 * float(mj.stat.extent)  # 20 mm for the humanoid (extent 2 m)
     # contact markers: the geoms of the body that carries each contact site (hindfoot, toes)
     contact_geoms = [np.nonzero(mj.geom_bodyid == mj.site_bodyid[s])[0] for s in sites]
 
-    mj = copy.copy(mj)  # render settings go on a copy of the user's model
-    if quality == "fast":
-        mj.vis.quality.offsamples = 0  # no multisampling
-    renderer = open_renderer(mj, H, W)
-    d = mujoco.MjData(mj)
-    free_cam = mujoco.MjvCamera()
-    try:
-        for t in range(T):
-            d.qpos[:] = q[t]
-            mujoco.mj_kinematics(mj, d)
-            mujoco.mj_comPos(mj, d)  # for cameras that track the centre of mass
-            mujoco.mj_camlight(mj, d)
-            tinted = set()
-            if contacts is not None:
-                for c in np.nonzero(contacts[t] > 0.5)[0]:
-                    tinted.update(int(g) for g in contact_geoms[c])
-            panels = []
-            for v in views:
-                if v == "camera":
-                    renderer.update_scene(d, camera=free_cam)
-                    _set_pinhole(renderer.scene, intr, isize, extr, W, H)
-                else:
-                    renderer.update_scene(d, camera=cam_ids[v])
-                scene = renderer.scene
-                if quality == "fast":  # shadows and floor reflections cost ~5x on llvmpipe
-                    scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
-                    scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
-                if tinted:
-                    for i in range(scene.ngeom):
-                        g = scene.geoms[i]
-                        if g.objtype == mujoco.mjtObj.mjOBJ_GEOM and g.objid in tinted:
-                            g.rgba[:] = CONTACT_RGBA
-                if grf is not None:
-                    for start, force in _foot_forces(d.site_xpos[sites].astype(np.float64), grf[t]):
-                        if np.linalg.norm(force) > 0.01 * weight:
-                            _add_arrow(scene, start, start + scale * force, arrow_w, ARROW_RGBA)
-                img = renderer.render()
-                points = None
-                if v == "camera" and kp is not None:
-                    points = kp[t].copy()
-                    points[:, 0] = k * points[:, 0] + ox
-                    points[:, 1] = k * points[:, 1] + oy
-                label = [v] + ([f"t {t / fps:.2f} s"] if fps and not panels else [])
-                panels.append(_draw_overlay(img, points, bones, label))
-            yield np.concatenate(panels, axis=1)
-    finally:
-        renderer.close()
+    def frames() -> Iterator[np.ndarray]:
+        mjr = copy.copy(mj)  # render settings go on a copy of the user's model
+        if quality == "fast":
+            mjr.vis.quality.offsamples = 0  # no multisampling
+        renderer = open_renderer(mjr, H, W)
+        d = mujoco.MjData(mjr)
+        free_cam = mujoco.MjvCamera()
+        try:
+            for t in range(T):
+                d.qpos[:] = q[t]
+                mujoco.mj_kinematics(mjr, d)
+                mujoco.mj_comPos(mjr, d)  # for cameras that track the centre of mass
+                mujoco.mj_camlight(mjr, d)
+                tinted = set()
+                if contacts is not None:
+                    for c in np.nonzero(contacts[t] > 0.5)[0]:
+                        tinted.update(int(g) for g in contact_geoms[c])
+                panels = []
+                for v in views:
+                    if v == "camera":
+                        renderer.update_scene(d, camera=free_cam)
+                        _set_pinhole(renderer.scene, intr, isize, extr, W, H)
+                    else:
+                        renderer.update_scene(d, camera=cam_ids[v])
+                    scene = renderer.scene
+                    if quality == "fast":  # shadows and floor reflections cost ~5x on llvmpipe
+                        scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+                        scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+                    if tinted:
+                        for i in range(scene.ngeom):
+                            g = scene.geoms[i]
+                            if g.objtype == mujoco.mjtObj.mjOBJ_GEOM and g.objid in tinted:
+                                g.rgba[:] = CONTACT_RGBA
+                    arrows = []
+                    if grf is not None:
+                        for start, force in _foot_forces(d.site_xpos[sites].astype(np.float64), grf[t]):
+                            if np.linalg.norm(force) > 0.01 * weight:
+                                end = start + scale * force
+                                _add_arrow(scene, start, end, arrow_w, ARROW_RGBA)
+                                uv, z = _gl_project(scene, np.stack([start, end]), W, H)
+                                if (z > scene.camera[0].frustum_near).all():
+                                    arrows.append(uv)
+                    img = renderer.render()
+                    points = frame = None
+                    if v == "camera":
+                        frame = (ox, oy, ox + k * isize[0] - 1, oy + k * isize[1] - 1)
+                        if kp is not None:
+                            points = kp[t].copy()
+                            points[:, 0] = k * points[:, 0] + ox
+                            points[:, 1] = k * points[:, 1] + oy
+                    label = [v] + ([f"t {t / fps:.2f} s"] if fps and not panels else [])
+                    panels.append(_draw_overlay(img, points, bones, label, arrows, frame))
+                yield np.concatenate(panels, axis=1)
+        finally:
+            renderer.close()
+
+    return frames()
 
 
 def _temp_path(path: Path) -> Path:
