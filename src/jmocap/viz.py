@@ -534,7 +534,8 @@ def render(
     """Render a motion to ``path``: MP4 (H.264, imageio-ffmpeg's ffmpeg) or GIF, by extension.
 
     Every frame is rendered (``fps`` is the playback rate). Arguments as
-    :func:`render_frames`. Written atomically (temp file in the same folder, then
+    :func:`render_frames`. MP4 streams frames to ffmpeg; a GIF holds them all in memory
+    (about 0.25 MB per 640x240 frame), so prefer MP4 for long clips. Written atomically (temp file in the same folder, then
     ``os.replace``). Returns the path.
     """
     path = Path(path)
