@@ -25,6 +25,7 @@ import numpy as np
 from flax import struct
 
 from jmocap.model import Model
+from jmocap.physics import linalg
 from jmocap.physics.kinematics import Kinematics, _c, _dtype, contact_jacobian, forward_kinematics
 from jmocap.physics.rotations import quat_exp, quat_mul, quat_normalize
 
@@ -163,13 +164,14 @@ def smooth_dynamics(model: Model, q: Array, qd: Array) -> SmoothDynamics:
 
 
 def cholesky(M: Array) -> Array:
-    """Lower Cholesky factor L of the (symmetric positive definite) mass matrix."""
-    return jnp.linalg.cholesky(M)
+    """Lower Cholesky factor L of the (symmetric positive definite) mass matrix (pure JAX, no
+    LAPACK call: see :mod:`jmocap.physics.linalg`)."""
+    return linalg.cholesky(M)
 
 
 def cho_solve(L: Array, b: Array) -> Array:
     """Solve M x = b given M's lower Cholesky factor; b may be (nv,) or (nv, k)."""
-    return jax.scipy.linalg.cho_solve((L, True), b)
+    return linalg.cho_solve(L, b)
 
 
 def mass_inverse(L: Array) -> Array:

@@ -1,0 +1,170 @@
+"""Small dense linear algebra in pure JAX: Cholesky factor and triangular solves.
+
+Why not ``jnp.linalg.cholesky`` / ``jax.scipy.linalg.cho_solve``: on CPU those lower to LAPACK
+custom calls, and jaxlib 0.10 runs a batched call as a ``ParallelBatchMap`` on XLA's intra-op
+thread pool and blocks the calling pool thread until it finishes. When two such calls run at
+once (independent branches of one program, e.g. the per-sample Cholesky and solves of a vmapped
+training step) on a 2-core machine, both pool threads block waiting for work that no free thread
+can pick up: the program deadlocks at 0% CPU. The functions here are ordinary XLA loops, so they
+cannot deadlock, batch under ``vmap`` like any other op, and need no LAPACK.
+
+The matrices are small (nv = 47 for the humanoid): one ``fori_loop`` over columns, each step a
+matrix-vector product over all rows (left-looking Cholesky-Banachiewicz, forward/backward
+substitution). Derivatives are analytic (``custom_jvp``), so reverse mode stores no per-column
+intermediates; the rules are the standard ones (Murray 2016 for the Cholesky factor):
+
+    dL = L Phi(L^-1 dM L^-T),  Phi = lower triangle with the diagonal halved
+    d(L^-1 B) = L^-1 (dB - dL L^-1 B)
+
+Shapes follow NumPy: leading batch axes are allowed everywhere.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+Array = jnp.ndarray
+
+
+# ---- single-matrix kernels -----------------------------------------------------------------
+
+
+def _cholesky_1(M: Array) -> Array:
+    n = M.shape[-1]
+    idx = jnp.arange(n)
+
+    def column(j, L):
+        # columns < j of L are final, the rest zero: (L @ L[j])_i = sum_{k<j} L_ik L_jk
+        v = M[:, j] - L @ L[j]
+        d = jnp.sqrt(v[j])  # NaN for a matrix that is not positive definite, as LAPACK's
+        col = jnp.where(idx > j, v / d, jnp.where(idx == j, d, 0.0))
+        return L.at[:, j].set(col)
+
+    return lax.fori_loop(0, n, column, jnp.zeros_like(M))
+
+
+def _solve_lower_1(L: Array, B: Array) -> Array:
+    """L X = B for lower-triangular L (n, n) and B (n, k), forward substitution."""
+    n = L.shape[-1]
+    idx = jnp.arange(n)
+
+    def row(j, X):
+        l = jnp.where(idx < j, L[j], 0.0)  # rows >= j of X are still zero
+        return X.at[j].set((B[j] - l @ X) / L[j, j])
+
+    return lax.fori_loop(0, n, row, jnp.zeros_like(B))
+
+
+def _solve_upper_1(L: Array, B: Array) -> Array:
+    """L^T X = B for lower-triangular L (n, n) and B (n, k), backward substitution."""
+    n = L.shape[-1]
+    idx = jnp.arange(n)
+
+    def row(i, X):
+        j = n - 1 - i
+        u = jnp.where(idx > j, L[:, j], 0.0)  # row j of L^T, right of the diagonal
+        return X.at[j].set((B[j] - u @ X) / L[j, j])
+
+    return lax.fori_loop(0, n, row, jnp.zeros_like(B))
+
+
+def _phi(X: Array) -> Array:
+    """Lower triangle of X with the diagonal halved."""
+    return jnp.tril(X, -1) + 0.5 * jnp.diag(jnp.diag(X))
+
+
+# ---- differentiable single-matrix functions -------------------------------------------------
+
+
+@jax.custom_jvp
+def _cholesky(M: Array) -> Array:
+    return _cholesky_1(M)
+
+
+@_cholesky.defjvp
+def _cholesky_jvp(primals, tangents):
+    (M,), (dM,) = primals, tangents
+    L = _cholesky(M)
+    dM = 0.5 * (dM + dM.T)  # only the symmetric part of a perturbation is meaningful
+    X = _solve_lower(L, _solve_lower(L, dM).T)  # L^-1 dM L^-T
+    return L, L @ _phi(X)
+
+
+@jax.custom_jvp
+def _solve_lower(L: Array, B: Array) -> Array:
+    return _solve_lower_1(L, B)
+
+
+@_solve_lower.defjvp
+def _solve_lower_jvp(primals, tangents):
+    (L, B), (dL, dB) = primals, tangents
+    X = _solve_lower(L, B)
+    return X, _solve_lower(L, dB - jnp.tril(dL) @ X)
+
+
+@jax.custom_jvp
+def _solve_upper(L: Array, B: Array) -> Array:
+    return _solve_upper_1(L, B)
+
+
+@_solve_upper.defjvp
+def _solve_upper_jvp(primals, tangents):
+    (L, B), (dL, dB) = primals, tangents
+    X = _solve_upper(L, B)
+    return X, _solve_upper(L, dB - jnp.tril(dL).T @ X)
+
+
+# ---- public, batched ---------------------------------------------------------------------------
+
+
+@functools.partial(jnp.vectorize, signature="(n,n)->(n,n)")
+def cholesky(M: Array) -> Array:
+    """Lower Cholesky factor of a symmetric positive definite matrix (..., n, n)."""
+    return _cholesky(M)
+
+
+def _with_matrix_rhs(fn, L: Array, b: Array) -> Array:
+    """Apply a (n, n), (n, k) kernel to b of shape (..., n) or (..., n, k), batched over L's
+    leading axes as well (b's trailing axes decide vector vs matrix, as in SciPy)."""
+    if b.ndim == L.ndim - 1:  # vector right-hand side(s)
+        return jnp.vectorize(lambda l, v: fn(l, v[:, None])[:, 0], signature="(n,n),(n)->(n)")(L, b)
+    return jnp.vectorize(fn, signature="(n,n),(n,k)->(n,k)")(L, b)
+
+
+def solve_lower(L: Array, b: Array) -> Array:
+    """x with L x = b, L lower triangular (..., n, n); b (..., n) or (..., n, k)."""
+    return _with_matrix_rhs(_solve_lower, L, b)
+
+
+def solve_upper(L: Array, b: Array) -> Array:
+    """x with L^T x = b, L lower triangular (..., n, n); b (..., n) or (..., n, k)."""
+    return _with_matrix_rhs(_solve_upper, L, b)
+
+
+def cho_solve(L: Array, b: Array) -> Array:
+    """x with (L L^T) x = b given the lower Cholesky factor L; b (..., n) or (..., n, k)."""
+    return solve_upper(L, solve_lower(L, b))
+
+
+def solve_spd3(A: Array, b: Array) -> Array:
+    """x with A x = b for symmetric positive definite 3x3 A (..., 3, 3), b (..., 3), in closed
+    form (the adjugate), so that no LAPACK call is made for a 3x3 system."""
+    a, bb, c = A[..., 0, 0], A[..., 0, 1], A[..., 0, 2]
+    d, e, f = A[..., 1, 1], A[..., 1, 2], A[..., 2, 2]
+    adj = jnp.stack(
+        [
+            jnp.stack([d * f - e * e, c * e - bb * f, bb * e - c * d], -1),
+            jnp.stack([c * e - bb * f, a * f - c * c, bb * c - a * e], -1),
+            jnp.stack([bb * e - c * d, bb * c - a * e, a * d - bb * bb], -1),
+        ],
+        -2,
+    )
+    det = a * adj[..., 0, 0] + bb * adj[..., 1, 0] + c * adj[..., 2, 0]
+    return jnp.einsum("...ij,...j->...i", adj, b) / det[..., None]
+
+
+__all__ = ["cho_solve", "cholesky", "solve_lower", "solve_spd3", "solve_upper"]

@@ -1,0 +1,75 @@
+"""jmocap.physics.linalg (pure-JAX Cholesky and triangular solves) against LAPACK (NumPy) and
+finite differences. Tolerances: float64 round-off of a 7x7 / 47x47 factorisation."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+from jmocap.physics import linalg as la
+
+
+def spd(rng, batch, n):
+    A = rng.normal(size=(*batch, n, n))
+    return A @ np.swapaxes(A, -1, -2) + n * np.eye(n)
+
+
+@pytest.mark.parametrize("n", [1, 7, 47])
+def test_matches_lapack(enable_x64, n):
+    rng = np.random.default_rng(n)
+    M = spd(rng, (4,), n)
+    b, B = rng.normal(size=(4, n)), rng.normal(size=(4, n, 3))
+    L = la.cholesky(M)
+    np.testing.assert_allclose(L, np.linalg.cholesky(M), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(la.cho_solve(L, b), np.linalg.solve(M, b[..., None])[..., 0], atol=1e-12)
+    np.testing.assert_allclose(la.cho_solve(L, B), np.linalg.solve(M, B), atol=1e-12)
+    np.testing.assert_allclose(la.solve_lower(L, B), np.linalg.solve(L, B), atol=1e-12)
+    np.testing.assert_allclose(la.solve_upper(L, B), np.linalg.solve(np.swapaxes(L, -1, -2), B), atol=1e-12)
+    # one factor, a batch of right-hand sides (broadcasting)
+    np.testing.assert_allclose(la.cho_solve(L[0], B), np.linalg.solve(M[0], B), atol=1e-12)
+
+
+def test_float32_and_jit_vmap():
+    rng = np.random.default_rng(0)
+    M = spd(rng, (8,), 47).astype(np.float32)
+    b = rng.normal(size=(8, 47)).astype(np.float32)
+    x = jax.jit(jax.vmap(lambda m, v: la.cho_solve(la.cholesky(m), v)))(M, b)
+    assert x.dtype == jnp.float32
+    ref = np.linalg.solve(M.astype(np.float64), b[..., None].astype(np.float64))[..., 0]
+    np.testing.assert_allclose(x, ref, rtol=1e-4, atol=1e-5)
+
+
+def test_not_positive_definite_is_nan_not_a_wrong_answer(enable_x64):
+    assert np.isnan(la.cholesky(np.diag([1.0, -1.0, 1.0]))).any()
+
+
+def test_gradients_match_finite_differences(enable_x64):
+    rng = np.random.default_rng(1)
+    A, b, B = rng.normal(size=(7, 7)), rng.normal(size=7), rng.normal(size=(7, 2))
+
+    def solve(A, b):  # a symmetric positive definite parametrisation of M
+        return la.cho_solve(la.cholesky(A @ A.T + 3.0 * jnp.eye(7)), b)
+
+    check_grads(solve, (A, b), order=2, modes=["fwd", "rev"])
+    check_grads(lambda A: la.cholesky(A @ A.T + 3.0 * jnp.eye(7)), (A,), order=1, modes=["fwd", "rev"])
+    L = np.linalg.cholesky(A @ A.T + 3.0 * np.eye(7))
+    check_grads(lambda L, B: la.solve_lower(jnp.tril(L), B), (L, B), order=1, modes=["fwd", "rev"])
+    check_grads(lambda L, B: la.solve_upper(jnp.tril(L), B), (L, B), order=1, modes=["fwd", "rev"])
+
+
+def test_solve_spd3(enable_x64):
+    rng = np.random.default_rng(2)
+    A, b = spd(rng, (5,), 3), rng.normal(size=(5, 3))
+    np.testing.assert_allclose(la.solve_spd3(A, b), np.linalg.solve(A, b[..., None])[..., 0], atol=1e-12)
+    check_grads(la.solve_spd3, (A[0], b[0]), order=1, modes=["fwd", "rev"])
+
+
+def test_no_lapack_custom_call_in_the_compiled_program():
+    """The point of the module (see its docstring): no LAPACK custom calls that could deadlock
+    XLA's CPU thread pool."""
+    M = spd(np.random.default_rng(3), (4,), 10).astype(np.float32)
+    hlo = jax.jit(jax.vmap(lambda m: la.cho_solve(la.cholesky(m), jnp.eye(10)))).lower(M).as_text()
+    assert "lapack" not in hlo and "custom_call" not in hlo
