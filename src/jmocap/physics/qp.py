@@ -180,7 +180,7 @@ def _subset_bits(m: int) -> np.ndarray:
     return ((idx >> np.arange(m)[:, None]) & 1).astype(bool)  # (m, 2^m): row i in subset s
 
 
-def _enumerate(A, b):
+def _enumerate(A, b, bmag):
     """Active set of one QP by exhaustive enumeration of all 2^m subsets (sweep-operator tree)."""
     m = A.shape[0]
     eps = _eps(A)
@@ -201,16 +201,18 @@ def _enumerate(A, b):
     t = C[:, 0, :]  # (m, 2^m): lambda_i for i in S, -w_i for i not in S
     bits = jnp.asarray(_subset_bits(m))
     d, _ = _row_scale(A)
-    viol = jnp.where(bits, -t * d[:, None], t / d[:, None])
+    # slack violations within the rounding of b count as none (so a v on the boundary stays v)
+    t_out = jnp.where(t > ADD_RTOL * eps * bmag[:, None], t, 0.0)
+    viol = jnp.where(bits, -t * d[:, None], t_out / d[:, None])
     score = jnp.maximum(jnp.max(viol, axis=0), 0.0)
     score = jnp.where(ok, score, jnp.inf)
     return bits[:, jnp.argmin(score)]
 
 
-def _enumerate_batch(A, b):
+def _enumerate_batch(A, b, bmag):
     if A.shape[0] <= ENUM_CHUNK:
-        return jax.vmap(_enumerate)(A, b)
-    return lax.map(lambda ab: _enumerate(*ab), (A, b), batch_size=ENUM_CHUNK)
+        return jax.vmap(_enumerate)(A, b, bmag)
+    return lax.map(lambda args: _enumerate(*args), (A, b, bmag), batch_size=ENUM_CHUNK)
 
 
 # ----------------------------------------------------------------------------- dual active set
@@ -327,7 +329,7 @@ def _selector(method: str, fast: int, extra: int, fallback: bool):
     @custom_vmap
     def select(A, b, bmag):
         if method == "enumerate":
-            return _enumerate_batch(A, b)
+            return _enumerate_batch(A, b, bmag)
         st = jax.vmap(_gi_init)(A, b)
         st = jax.vmap(lambda a_, m_, s_: _gi_steps(a_, m_, s_, fast))(A, bmag, st)
         ok = st.done & ~st.stuck
@@ -344,7 +346,7 @@ def _selector(method: str, fast: int, extra: int, fallback: bool):
             mask = lax.cond(
                 jnp.all(ok),
                 lambda mk: mk,
-                lambda mk: jnp.where(ok[:, None], mk, _enumerate_batch(A, b)),
+                lambda mk: jnp.where(ok[:, None], mk, _enumerate_batch(A, b, bmag)),
                 mask,
             )
         return mask

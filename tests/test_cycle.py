@@ -1,0 +1,248 @@
+"""The physionical pipeline: gradient flow through the dynamic cycle, causality, padding, the
+hard constraint, ablation switches and the closed-form translation."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conftest import x64
+from jmocap import physics as P
+from jmocap.camera import Camera, canonicalise, project
+from jmocap.cycle import (
+    ClipInputs,
+    CycleConfig,
+    CycleState,
+    causal_windows,
+    default_extrinsics,
+    init_params,
+    least_squares_translation,
+    reconstruct,
+    simulate,
+    soft_limit_wrench,
+)
+from jmocap.model import load_model
+from jmocap.nets import NetConfig
+
+SMALL = CycleConfig(nets=NetConfig(tp_width=16, dyn_width=32, grf_width=32, tp_blocks=2))
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model(with_mjx=False)
+
+
+def perturbed_params(model, config, scale=0.05, seed=0):
+    """Fresh parameters with noise on every leaf, so that zero-initialised output layers do not
+    hide gradients of the layers before them."""
+    params = init_params(jax.random.PRNGKey(seed), model, config)
+    leaves, tree = jax.tree.flatten(params)
+    keys = jax.random.split(jax.random.PRNGKey(seed + 1), len(leaves))
+    leaves = [x + scale * jax.random.normal(k, x.shape, x.dtype) for x, k in zip(leaves, keys, strict=True)]
+    return jax.tree.unflatten(tree, leaves)
+
+
+def standing_targets(model, T, sink=0.0):
+    q = np.tile(model.keyframe("stand"), (T, 1))
+    q[:, 2] -= sink
+    hq = model.topo.hinge_qadr
+    q[:, hq] += 0.05 * np.sin(np.arange(T))[:, None]
+    return q
+
+
+def synthetic_inputs(model, T=12, seed=0):
+    """Keypoints of a standing subject seen by the default camera (no noise)."""
+    rng = np.random.default_rng(seed)
+    q = standing_targets(model, T)
+    q[:, 0] += rng.normal(scale=0.1)
+    kp3 = np.asarray(jax.vmap(lambda x: P.keypoints(model, x, "body25"))(q))
+    cam = Camera.from_intrinsics(1000.0, 1000.0, 640.0, 360.0, 1280, 720, default_extrinsics())
+    uv = np.asarray(project(cam, kp3))
+    kp = np.concatenate([uv, np.ones((*uv.shape[:2], 1))], -1).astype(np.float32)
+    return ClipInputs(kp, np.array([1000, 1000, 640, 360], np.float32), np.array([1280, 720], np.float32),
+                      default_extrinsics().astype(np.float32), np.float32(30.0), np.ones(T, bool))
+
+
+def test_gradient_flows_through_cycles_projection_and_scan(model):
+    """A loss on the final q has finite, non-zero gradients w.r.t. DyNet and GRFNet through the
+    k = 6 iterations per frame, the hard-constraint projection and the scan over frames."""
+    cfg = SMALL
+    params = perturbed_params(model, cfg, scale=0.01)
+    T = 3
+    q_hat = jnp.asarray(standing_targets(model, T), jnp.float32)
+    init = CycleState(q_hat[0].at[2].add(-0.01), jnp.zeros(model.nv), jnp.zeros((4, 3)))  # 1 cm deep
+    prob = jnp.ones((T, 4))
+
+    def loss(params):
+        _, out = simulate(params, model, q_hat, prob, jnp.ones(T, bool), 30.0, cfg, init=init)
+        return jnp.sum((out.q[-1] - q_hat[-1]) ** 2)
+
+    grads = jax.jit(jax.grad(loss))(params)
+    for net in ("dynet", "grfnet"):
+        leaves = jax.tree.leaves(grads[net])
+        assert all(bool(jnp.all(jnp.isfinite(g))) for g in leaves), net
+        assert sum(float(jnp.sum(g * g)) for g in leaves) > 0, net
+        # every layer receives gradient, not only the output layer
+        assert all(float(jnp.max(jnp.abs(g))) > 0 for g in leaves), net
+
+
+@pytest.mark.slow
+def test_cycle_gradient_matches_finite_differences(model):
+    """Directional derivative of the final pose w.r.t. DyNet and GRFNet parameters (x64)."""
+    with x64():
+        cfg = SMALL
+        params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64), perturbed_params(model, cfg, scale=0.01))
+        T = 2
+        q_hat = jnp.asarray(standing_targets(model, T, sink=0.0))
+        init = CycleState(q_hat[0].at[2].add(-0.005), jnp.zeros(model.nv), jnp.zeros((4, 3)))
+        prob = jnp.ones((T, 4))
+
+        def loss(params):
+            _, out = simulate(params, model, q_hat, prob, jnp.ones(T, bool), 30.0, cfg, init=init)
+            return jnp.sum(jnp.sin(3.0 * out.q[-1]))
+
+        f = jax.jit(loss)
+        g = jax.jit(jax.grad(loss))(params)
+        for net in ("dynet", "grfnet"):
+            direction = jax.tree.map(lambda x: jnp.zeros_like(x), params)
+            keys = jax.random.split(jax.random.PRNGKey(3), len(jax.tree.leaves(params[net])))
+            sub = jax.tree.unflatten(
+                jax.tree.structure(params[net]),
+                [jax.random.normal(k, x.shape, x.dtype) for k, x in zip(keys, jax.tree.leaves(params[net]), strict=True)],
+            )
+            direction = {**direction, net: sub}
+            eps = 1e-6
+            plus = jax.tree.map(lambda p, d: p + eps * d, params, direction)
+            minus = jax.tree.map(lambda p, d: p - eps * d, params, direction)
+            fd = (f(plus) - f(minus)) / (2 * eps)
+            ad = sum(jnp.sum(a * b) for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(direction), strict=True))
+            assert abs(float(fd)) > 1e-8, net
+            np.testing.assert_allclose(float(ad), float(fd), rtol=1e-4, err_msg=net)
+
+
+def test_reconstruct_is_causal_and_ignores_padding(model):
+    cfg = SMALL
+    params = perturbed_params(model, cfg, scale=0.01)
+    T = 10
+    inp = synthetic_inputs(model, T)
+    rec = jax.jit(reconstruct, static_argnums=3)
+    full = rec(params, model, inp, cfg)
+    # changing the last frame's keypoints changes nothing before it
+    kp = np.array(inp.keypoints)
+    kp[-1, :, :2] += 30.0
+    changed = rec(params, model, inp.replace(keypoints=kp), cfg)
+    np.testing.assert_array_equal(full.q[:-1], changed.q[:-1])
+    assert not np.allclose(full.target_q[-1], changed.target_q[-1])
+    # padding: a clip padded with junk frames gives the same real frames
+    pad = 6
+    padded = ClipInputs(
+        np.concatenate([inp.keypoints, np.full((pad, 25, 3), 7.0, np.float32)]),
+        inp.intrinsics, inp.image_size, inp.extrinsics, inp.fps,
+        np.concatenate([inp.mask, np.zeros(pad, bool)]),
+    )
+    out = rec(params, model, padded, cfg)
+    np.testing.assert_allclose(out.q[:T], full.q, atol=1e-5)
+    np.testing.assert_array_equal(out.mask, padded.mask)
+    # padded frames hold the last real state
+    np.testing.assert_array_equal(out.q[T:], np.broadcast_to(out.q[T - 1], out.q[T:].shape))
+
+
+def test_vmap_over_clips_matches_single_clips(model):
+    """In float64: in float32 batched and single kernels round differently and 48 cycle steps
+    amplify the difference to ~1e-3."""
+    cfg = SMALL
+    clips = [synthetic_inputs(model, 8, seed=s) for s in range(3)]  # numpy, made before x64
+    with x64():
+        model = load_model(with_mjx=False)  # its arrays made under x64 (no int32/int64 mix)
+        params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64), perturbed_params(model, cfg, scale=0.01))
+        batch = jax.tree.map(lambda *x: np.stack(x).astype(np.float64) if np.stack(x).dtype == np.float32 else np.stack(x), *clips)
+        out = jax.jit(jax.vmap(reconstruct, in_axes=(None, None, 0, None)), static_argnums=3)(params, model, batch, cfg)
+        rec = jax.jit(reconstruct, static_argnums=3)
+        for i in range(len(clips)):
+            single = rec(params, model, jax.tree.map(lambda x, i=i: x[i], batch), cfg)
+            np.testing.assert_allclose(out.q[i], single.q, atol=1e-8)
+
+
+def test_hard_constraint_prevents_penetration(model):
+    """Targets 5 cm below the floor: with the projection the contact points stay above the
+    floor (to the recovery tolerance); without it they sink."""
+    params = perturbed_params(model, SMALL, scale=0.0)
+    T = 8
+    q_hat = jnp.asarray(standing_targets(model, T, sink=0.05), jnp.float32)
+    prob = jnp.ones((T, 4))
+    init = CycleState(jnp.asarray(standing_targets(model, 1)[0], jnp.float32), jnp.zeros(model.nv), jnp.zeros((4, 3)))
+
+    def min_height(cfg):
+        _, out = jax.jit(simulate, static_argnums=6)(params, model, q_hat, prob, jnp.ones(T, bool), 30.0, cfg, init=init)
+        h = jax.vmap(lambda q: P.contact_points(model, q)[1])(out.q)
+        return float(jnp.min(h))
+
+    with_c = min_height(dataclasses.replace(SMALL, use_dynet=False, use_grfnet=False))
+    without = min_height(dataclasses.replace(SMALL, use_dynet=False, use_grfnet=False, hard_constraint=False))
+    assert with_c > -1e-3
+    assert without < -0.01
+
+
+def test_ablation_switches_run(model):
+    params = perturbed_params(model, SMALL, scale=0.01)
+    inp = synthetic_inputs(model, 6)
+    rec = jax.jit(reconstruct, static_argnums=3)
+    for change in (
+        dict(kinematic_only=True),
+        dict(use_dynet=False),
+        dict(use_grfnet=False),
+        dict(hard_constraint=False),
+        dict(canonicalise=False),
+        dict(metric="identity"),
+        dict(root_residual_limit=None),
+    ):
+        out = rec(params, model, inp, dataclasses.replace(SMALL, **change))
+        assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(out)), change
+    kin = rec(params, model, inp, dataclasses.replace(SMALL, kinematic_only=True))
+    np.testing.assert_array_equal(kin.q, kin.target_q)
+
+
+def test_least_squares_translation_is_exact_without_noise(model):
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        q = np.array(model.keyframe("stand"))
+        q[:3] = 0.0
+        quat = rng.normal(size=4)
+        q[3:7] = quat / np.linalg.norm(quat)
+        p_rr = np.asarray(P.keypoints(model, q, "body25"))
+        t = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(3, 8)])
+        X = p_rr + t
+        uv = X[:, :2] / X[:, 2:3] * 1000.0 + 500.0
+        kc = canonicalise(np.concatenate([uv, np.ones((25, 1))], -1), np.array([1000.0, 1000.0, 500.0, 500.0]))
+        np.testing.assert_allclose(least_squares_translation(jnp.asarray(p_rr), kc), t, atol=2e-3)
+
+
+def test_soft_limit_wrench_by_hand():
+    w = jnp.array([3.0, 4.0, 0.0, 0.0, 0.0, 0.0])
+    # |f| = 5, limit 5 -> scale 1/sqrt(2)
+    np.testing.assert_allclose(soft_limit_wrench(w, 5.0)[:3], np.array([3.0, 4.0, 0.0]) / np.sqrt(2), rtol=1e-6)
+    np.testing.assert_allclose(soft_limit_wrench(w, 5.0)[3:], 0.0)
+    small = jnp.array([1e-3, 0, 0, 0, 2e-3, 0])
+    np.testing.assert_allclose(soft_limit_wrench(small, 1000.0), small, rtol=1e-6)
+
+
+def test_causal_windows():
+    x = jnp.arange(5)
+    np.testing.assert_array_equal(causal_windows(x, 3), [[0, 0, 0], [0, 0, 1], [0, 1, 2], [1, 2, 3], [2, 3, 4]])
+
+
+def test_from_clip_pads_and_rejects_short_length():
+    from jmocap.data.clip import Clip
+
+    kp = np.ones((4, 25, 3), np.float32)
+    clip = Clip(name="c", layout="body25", fps=30.0, keypoints=kp,
+                intrinsics=np.array([1000.0, 1000.0, 500.0, 500.0]), image_size=np.array([1000, 1000]))
+    inp = ClipInputs.from_clip(clip, length=6)
+    assert inp.keypoints.shape == (6, 25, 3)
+    np.testing.assert_array_equal(inp.mask, [1, 1, 1, 1, 0, 0])
+    with pytest.raises(ValueError, match="more than the padded length"):
+        ClipInputs.from_clip(clip, length=3)
