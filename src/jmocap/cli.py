@@ -339,5 +339,62 @@ def cmd_eval(args) -> int:
     return run(args)
 
 
+# =========================================================================================
+# jmocap reconstruct
+# =========================================================================================
+
+
+def _image_size_arg(text: str):
+    """``WIDTHxHEIGHT`` pixels."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w > 0 and h > 0:
+            return (w, h)
+    except ValueError:
+        pass
+    raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1920x1080, got {text!r}")
+
+
+def _xla_cache_dir() -> str:
+    import os
+
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "jmocap", "xla")
+
+
+@command("reconstruct", "reconstruct 3D motion for every clip of a folder, .zip or .tar")
+def _reconstruct(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Reconstruct every clip of INPUT (a jmocap archive, or a folder / .zip / .tar of clips in "
+        "any supported 2D format) into OUTPUT: one result .npz per clip, manifest.jsonl and "
+        "summary.json (docs/formats.md). Resumes: clips with a result are skipped; a bad clip is "
+        "recorded as failed and the run goes on."
+    )
+    p.add_argument("input", help="jmocap archive, or folder / .zip / .tar of clips")
+    p.add_argument("output", help="output folder (created; resumed if it exists)")
+    p.add_argument("--params", help="parameters (.msgpack); default: the shipped weights")
+    p.add_argument("--config", metavar="JSON",
+                   help="CycleConfig fields (JSON text or file) overriding the parameters' config")
+    p.add_argument("--kinematic-only", action="store_true", help="TPNet's target pose only (no dynamics)")
+    p.add_argument("--chunk", type=int, default=256, metavar="N", help="frames per chunk (default 256)")
+    p.add_argument("--bucket", type=int, default=64, metavar="N",
+                   help="a clip's last chunk is padded to a multiple of N frames (default 64)")
+    p.add_argument("--batch", type=int, default=8, metavar="N", help="clips per device per call (default 8)")
+    p.add_argument("--image-size", type=_image_size_arg, metavar="WxH",
+                   help="image size assumed for clips whose file and camera sidecar give none")
+    p.add_argument("--bvh", action="store_true", help="also write <name>.bvh per clip")
+    p.add_argument("--max-clips", type=int, metavar="N", help="process at most N clips this run")
+    p.add_argument("--cache-dir", default=_xla_cache_dir(), metavar="DIR",
+                   help="persistent XLA compilation cache ('' for none; default %(default)s)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_reconstruct)
+
+
+def cmd_reconstruct(args) -> int:
+    from jmocap.batch import run_cli
+
+    return run_cli(args)
+
+
 if __name__ == "__main__":
     sys.exit(main())
