@@ -79,6 +79,7 @@ class EvalConfig:
     max_clips: int | None = None
     seed: int = 0
     progress: bool = True
+    max_frames: int | None = None  # crop every clip to its first frames (quick checks)
 
 
 @dataclass
@@ -257,6 +258,8 @@ def evaluate(
     if config.batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {config.batch_size}")
     clips = list(clips) if clips is not None else select_clips(archive, config.max_clips, config.seed)
+    if config.max_frames is not None:
+        clips = [c.slice(0, config.max_frames) for c in clips]
     failures: list[dict[str, str]] = []
     usable = []
     for c in clips:
@@ -289,24 +292,19 @@ def evaluate(
             raise ValueError(f"method {method!r} needs parameters")
         for batch in batches:
             try:
-                preds = _predict(m_params, batch, cfg, length)
+                preds = _predict(m_params, batch, cfg)
             except Exception as e:  # a batch run records the failure and goes on (DESIGN)
                 failures += [{"method": method, "clip": c.name, "error": f"{type(e).__name__}: {e}"}
                              for c in batch.clips]
                 bar.update(1)
                 continue
-            for i, clip in enumerate(batch.clips):
-                pred, mass = preds[i]
+            for i, (clip, (pred, mass, own)) in enumerate(zip(batch.clips, preds, strict=True)):
                 try:
                     per_clip[method][clip.name] = _evaluate_clip(clip, i, pred, batch.gt, length, mass)
                 except ValueError as e:
                     failures.append({"method": method, "clip": clip.name, "error": str(e)})
-                if clip.name in keep_motions:
-                    T = clip.num_frames
-                    motions.setdefault(method, {})[clip.name] = {
-                        k: np.asarray(v)[:T] for k, v in pred.items()
-                        if k in ("q", "grf", "tau", "contact_prob", "keypoints3d")
-                    }
+                if clip.name in keep_motions and own:
+                    motions.setdefault(method, {})[clip.name] = {k: v[: clip.num_frames] for k, v in own.items()}
             bar.update(1)
     bar.close()
     summary, counts = aggregate(per_clip)
@@ -320,32 +318,36 @@ def evaluate(
                            for m in config.methods},
         "own_params": sorted(method_params or {}),
         "seed": config.seed,
+        "max_frames": config.max_frames,
     }
     return EvalResult(str(archive), [c.name for c in usable], tuple(config.methods), summary, counts,
                       per_clip, failures, motions, info)
 
 
-def _predict(params, batch: _Batch, cfg: CycleConfig | None, length: int) -> list[tuple[dict, float]]:
-    """Per real clip of the batch: (the arrays evaluate_arrays reads, the estimate's mass)."""
-    n = len(batch.clips)
+def _predict(params, batch: _Batch, cfg: CycleConfig | None) -> list[tuple[dict, float, dict]]:
+    """Per real clip of the batch: (the arrays evaluate_arrays reads, the estimate's mass, the
+    estimated motion's own arrays)."""
     if cfg is None:  # ground truth through the metrics
-        return [(_ground_truth_pred({k: v[i] for k, v in batch.gt.items()}),
-                 c.mass_kg or subject_model(c).total_mass) for i, c in enumerate(batch.clips)]
+        out = []
+        for i, c in enumerate(batch.clips):
+            pred = _ground_truth_pred({k: v[i] for k, v in batch.gt.items()})
+            out.append((pred, c.mass_kg or subject_model(c).total_mass, {}))
+        return out
     motion = _batched_reconstruct()(params, batch.models, batch.inputs, cfg)
-    q = np.asarray(motion.q)
-    if not np.all(np.isfinite(q)):  # keep the quantities finite; evaluate_arrays reports the clip
-        q = np.where(np.isfinite(q), q, 0.0)
-    qty = _batched_quantities(batch.clips[0].layout)(batch.models, q, np.asarray(batch.inputs.fps),
+    # (a non-finite estimate gives non-finite quantities, which evaluate_arrays reports)
+    qty = _batched_quantities(batch.clips[0].layout)(batch.models, motion.q, batch.inputs.fps,
                                                    batch.half_width)
+    qty, motion = jax.device_get((qty, motion))
     out = []
-    for i, clip in enumerate(batch.clips[:n]):
-        pred = {k: np.asarray(v[i]) for k, v in qty.items()}
-        pred["q"] = np.asarray(motion.q[i])
-        pred["contact_prob"] = np.asarray(motion.contact_prob[i])
+    for i, clip in enumerate(batch.clips):
+        pred = {k: v[i] for k, v in qty.items()}
+        pred["contact_prob"] = motion.contact_prob[i]
         if not cfg.kinematic_only:  # the kinematic pipeline estimates no forces
-            pred["grf"] = np.asarray(motion.grf[i])
-            pred["tau"] = np.asarray(motion.tau[i])
-        out.append((pred, estimate_model(clip).total_mass))
+            pred["grf"] = motion.grf[i]
+            pred["tau"] = motion.tau[i]
+        own = {"q": motion.q[i], "grf": motion.grf[i], "tau": motion.tau[i],
+               "contact_prob": motion.contact_prob[i], "keypoints3d": pred["keypoints3d"]}
+        out.append((pred, estimate_model(clip).total_mass, own))
     return out
 
 

@@ -676,26 +676,35 @@ def motion_quantities(model: Model, q: Array, fps, layout: str = "body25", half_
     lateral = safe_normalize(kin.xmat[:, bodies][..., 1].at[..., 2].set(0.0))  # feet's y axes, floor plane
     hw = jnp.asarray(half_width, q.dtype)
     support = jnp.stack([feet + hw * lateral, feet - hw * lateral], -2).reshape(q.shape[0], -1, 3)
-    zmp, force = zero_moment_point(model, q, fps)
+    zmp, force = zero_moment_point(model, q, fps, kin=kin)
     return dict(keypoints3d=kp, feet=feet, support=support, zmp=zmp, implied_force=force)
 
 
-def zero_moment_point(model: Model, q: Array, fps) -> tuple[Array, Array]:
+def zero_moment_point(model: Model, q: Array, fps, *, kin=None) -> tuple[Array, Array]:
     """The (fictitious) zero-moment point of a motion ``q`` (T, nq): ``(zmp (T, 2), force (T, 3))``.
 
     PIP [002] Sec. 4 after Vukobratovic & Borovac 2004. Computed from whole-body dynamics, not
-    from the estimated contact forces: inverse dynamics (:func:`jmocap.physics.inverse_dynamics`,
-    no contact) of the central-difference velocities and accelerations gives the external wrench
-    the motion needs at the root (``tau[:3]``: world force, ``R tau[3:6]``: torque about the
-    root); the ZMP is where that wrench has no horizontal moment (:func:`zmp_from_wrench`). This
-    includes the rate of change of angular momentum, not only the centre-of-mass acceleration.
-    The centre of pressure of *estimated* contact forces lies in the support polygon by
-    construction whenever their normal components are non-negative, so it would measure
-    nothing. ``force`` is the external force needed (``m (c'' - g)``); the ZMP means little where
-    its vertical part is small (flight). Edge frames use one-sided differences: mask them.
+    from the estimated contact forces: the root rows of the inverse dynamics without contact,
+    ``tau = M qdd + h`` (:func:`jmocap.physics.mass_matrix`, :func:`~jmocap.physics.bias_forces`)
+    of the central-difference velocities and accelerations, are the external wrench the motion
+    needs (``tau[:3]``: world force, ``R tau[3:6]``: torque about the root); the ZMP is where that
+    wrench has no horizontal moment (:func:`zmp_from_wrench`). This includes the rate of change
+    of angular momentum, not only the centre-of-mass acceleration. The centre of pressure of
+    *estimated* contact forces lies in the support polygon by construction whenever their normal
+    components are non-negative, so it would measure nothing. ``force`` is the external force
+    needed (``m (c'' - g)``); the ZMP means little where its vertical part is small (flight).
+    Edge frames use one-sided differences: mask them. ``kin``: the frames' forward kinematics
+    (batched over T), when already computed.
     """
     qd, qdd = _difference_velocities(model, q, fps)
-    tau = jax.vmap(lambda a, b, c: P.inverse_dynamics(model, a, b, c))(q, qd, qdd)
+    if kin is None:
+        kin = jax.vmap(lambda x: P.forward_kinematics(model, x))(q)
+
+    def root_wrench(qt, qdt, qddt, k):
+        M = P.mass_matrix(model, qt, kin=k)
+        return M[:6] @ qddt + P.bias_forces(model, qt, qdt, kin=k)[:6]
+
+    tau = jax.vmap(root_wrench)(q, qd, qdd, kin)
     R = quat_to_mat(q[:, 3:7])
     torque = jnp.einsum("tij,tj->ti", R, tau[:, 3:6])
     return zmp_from_wrench(tau[:, :3], torque, q[:, :3]), tau[:, :3]
@@ -764,6 +773,10 @@ def _finite(d: Mapping[str, Any], side: str, mask: np.ndarray) -> dict[str, np.n
     return out
 
 
+PRED_KEYS = ("keypoints3d", "feet", "support", "zmp", "implied_force", "grf", "tau", "contact_prob")
+GT_KEYS = ("keypoints3d", "feet", "support", "zmp", "implied_force", "grf", "tau", "contacts")
+
+
 def evaluate_arrays(
     pred: Mapping[str, Any],
     gt: Mapping[str, Any],
@@ -789,13 +802,34 @@ def evaluate_arrays(
     undefined for this clip (e.g. ballistic GRF without flight frames); no value is NaN. Inputs
     must be finite on the real frames (ValueError naming the array and frame otherwise). Without
     estimated forces (``grf``), the GRF statistics use ``implied_force``, as [001] does for its
-    kinematic baseline.
+    kinematic baseline. Ballistic (flight) frames are those without any ground-truth contact,
+    or, without ground-truth labels, without any estimated one.
+
+    The metrics run as one jitted function per combination of available inputs and shapes.
     """
-    T = next(np.asarray(v).shape[0] for v in list(pred.values()) + list(gt.values()) if v is not None)
+    for side, d, keys in (("pred", pred, PRED_KEYS), ("gt", gt, GT_KEYS)):
+        unknown = sorted(set(d) - set(keys))
+        if unknown:
+            raise ValueError(f"{side} has unknown arrays {unknown}; known: {', '.join(keys)}")
+    arrays = [v for v in list(pred.values()) + list(gt.values()) if v is not None]
+    if not arrays:
+        return {}
+    T = np.shape(arrays[0])[0]
     m = np.ones(T, bool) if mask is None else np.asarray(mask, bool)
     if m.shape != (T,):
         raise ValueError(f"mask must have shape (T,) = ({T},), got {m.shape}")
     p, g = _finite(pred, "pred", m), _finite(gt, "gt", m)
+    values = _metric_values(p, g, m, np.float32(fps), camera, tuple(int(i) for i in root),
+                            None if pred_mass is None else np.float32(pred_mass),
+                            None if gt_mass is None else np.float32(gt_mass))
+    values = {k: float(v) for k, v in jax.device_get(values).items()}
+    return {k: values[k] for k in METRICS if k in values and np.isfinite(values[k])}
+
+
+@partial(jax.jit, static_argnames=("root",))
+def _metric_values(p, g, m, fps, camera, root, pred_mass, gt_mass) -> dict[str, Array]:
+    """The metrics of :func:`evaluate_arrays` as arrays (NaN where undefined); the set of keys
+    follows the (static) set of inputs."""
     out: dict[str, Array] = {}
     pw = None if pred_mass is None else pred_mass * GRAVITY
     gw = None if gt_mass is None else gt_mass * GRAVITY
@@ -813,7 +847,7 @@ def evaluate_arrays(
         out["accel_err_m_s2"] = acceleration_error(kp, kg, fps, m)
         if camera is not None:
             out["reproj_input_px"], out["reproj_input_std_px"] = reprojection_error(kp, kg, camera, m)
-            pivot = _mean(root_position(kg, root).T, jnp.asarray(m)[None], 1)  # mean gt root (3,)
+            pivot = _mean(root_position(kg, root).T, m[None], 1)  # the mean gt root (3,)
             side = side_view_camera(camera, pivot)
             out["reproj_side_px"], out["reproj_side_std_px"] = reprojection_error(kp, kg, side, m)
     if kp is not None:
@@ -834,29 +868,23 @@ def evaluate_arrays(
     if forces is not None and pw is not None:
         out["grf_mean_pct_bw"] = grf_mean(forces, pw, m)
         out["grf_max_pct_bw"] = grf_max(forces, pw, m)
-        if gt_contacts is not None:
-            flight = ~np.any(gt_contacts > 0.5, -1)
-        elif p.get("contact_prob") is not None:
-            flight = ~np.any(p["contact_prob"] > 0.5, -1)
-        else:
-            flight = None
-        if flight is not None:
-            out["grf_ballistic_pct_bw"] = grf_ballistic(forces, pw, flight, m)
+        labels = gt_contacts if gt_contacts is not None else p.get("contact_prob")
+        if labels is not None:
+            out["grf_ballistic_pct_bw"] = grf_ballistic(forces, pw, ~jnp.any(labels > 0.5, -1), m)
     if p.get("tau") is not None and pw is not None:
         out["root_residual_pct_bw"] = root_residual(p["tau"], pw, m)
     if all(p.get(k) is not None for k in ("zmp", "implied_force", "support", "feet")) and pw is not None:
-        support_contacts = jnp.repeat(contact_labels(p["feet"]), p["support"].shape[1] // 4, axis=-1)
-        out["zmp_dist_m"] = zmp_distance(p["zmp"], p["implied_force"][:, 2], pw, p["support"], support_contacts, m)
+        on = jnp.repeat(contact_labels(p["feet"]), p["support"].shape[1] // p["feet"].shape[1], axis=-1)
+        out["zmp_dist_m"] = zmp_distance(p["zmp"], p["implied_force"][:, 2], pw, p["support"], on, m)
     if p.get("grf") is not None and g.get("grf") is not None and pw is not None and gw is not None:
         out["grf_err_pct_bw"] = grf_error(p["grf"], g["grf"], pw, gw, m)
-    if p.get("tau") is not None and g.get("tau") is not None and pred_mass and gt_mass:
+    if p.get("tau") is not None and g.get("tau") is not None and pred_mass is not None and gt_mass is not None:
         out["torque_err_nm_kg"] = torque_error(p["tau"], g["tau"], pred_mass, gt_mass, m)
     if p.get("contact_prob") is not None and gt_contacts is not None:
         c = contact_classification(p["contact_prob"], gt_contacts, m)
-        out.update({f"contact_{k}_pct": v for k, v in
-                    (("acc", c["accuracy"]), ("prec", c["precision"]), ("rec", c["recall"]), ("f1", c["f1"]))})
-    values = {k: float(np.asarray(v)) for k, v in out.items()}
-    return {k: values[k] for k in METRICS if k in values and np.isfinite(values[k])}
+        out.update(contact_acc_pct=c["accuracy"], contact_prec_pct=c["precision"],
+                   contact_rec_pct=c["recall"], contact_f1_pct=c["f1"])
+    return out
 
 
 _quantities = jax.jit(motion_quantities, static_argnames="layout")
