@@ -70,6 +70,9 @@ class CycleConfig:
     kp_joint: float = 1600.0
     damping_ratio: float = 1.0
     nets: NetConfig = field(default_factory=NetConfig)
+    # where M, h and J_c come from: "jmocap" (physics.smooth_dynamics) or "mjx" (MJX's own
+    # smooth-dynamics functions; a reference and benchmark baseline, slow on CPU)
+    physics_backend: str = "jmocap"
 
 
 # ---------------------------------------------------------------------------------------
@@ -331,8 +334,12 @@ def cycle_step(
     """One iteration of the dynamic cycle (Sec. 3.4) from ``state`` towards target ``q_hat``."""
     q, qd = state.q, state.qd
     dtype = q.dtype
-    dyn = P.smooth_dynamics(model, q, qd)
-    M, h, Jc = dyn.M, dyn.h, dyn.Jc
+    if config.physics_backend == "jmocap":
+        dyn = P.smooth_dynamics(model, q, qd)
+        M, h, Jc, kin = dyn.M, dyn.h, dyn.Jc, dyn.kin
+    else:
+        M, h, Jc = mjx_smooth_dynamics(model, q, qd, config.physics_backend)
+        kin = None  # the projection's constraint rows then come from jmocap's kinematics
     e = pd_error(model, q_hat, q)
     kp0 = jnp.asarray(kp_initial(model, config), dtype)
     kd = 2.0 * config.damping_ratio * jnp.sqrt(kp0)
@@ -370,12 +377,41 @@ def cycle_step(
         Minv = P.mass_inverse(L) if config.metric == "mass" else None
         qd_new = P.project_velocity(
             model, q, qd_free, in_contact, dt=dt, metric=config.metric, beta=config.beta,
-            Minv=Minv, kin=dyn.kin,
+            Minv=Minv, kin=kin,
         )  # eqs. 15-16
     else:
         qd_new = qd_free
     q_new = P.integrate_positions(model, q, qd_new, dt)  # eqs. 1, 14
     return CycleState(q_new, qd_new, grf), StepOutput(tau_star, tau, grf, raw, qd_free)
+
+
+def mjx_smooth_dynamics(model: Model, q: Array, qd: Array, backend: str = "mjx"):
+    """``(M, h, J_c)`` from MJX's own functions (``CycleConfig(physics_backend="mjx")``).
+
+    kinematics, com_pos, crb, com_vel, rne, full_m, and ``mjx.jac`` at the four foot contact
+    sites (rows ordered as :func:`jmocap.physics.contact_jacobian`). Needs ``model.mjx``
+    (``load_model(with_mjx=True)``), built under the same ``jax_enable_x64`` setting as the run.
+    """
+    if backend != "mjx":
+        raise ValueError(f"physics_backend must be 'jmocap' or 'mjx', got {backend!r}")
+    if model.mjx is None:
+        raise ValueError("physics_backend='mjx' needs model.mjx: load the model with load_model(with_mjx=True)")
+    from jmocap.model import _import_mjx
+
+    mjx, mx, dtype = _import_mjx(), model.mjx, q.dtype
+    d = mjx.make_data(mx)
+    d = d.replace(qpos=q.astype(d.qpos.dtype), qvel=qd.astype(d.qvel.dtype))
+    d = mjx.kinematics(mx, d)
+    d = mjx.com_pos(mx, d)
+    d = mjx.crb(mx, d)
+    d = mjx.com_vel(mx, d)
+    d = mjx.rne(mx, d)
+    M = mjx.full_m(mx, d)
+    sites = model.topo.contact_sites
+    Jc = jnp.concatenate(
+        [mjx.jac(mx, d, d.site_xpos[s], int(model.topo.site_body[s]))[0].T for s in sites], 0
+    )
+    return M.astype(dtype), d.qfrc_bias.astype(dtype), Jc.astype(dtype)
 
 
 def soft_limit_wrench(wrench: Array, limit) -> Array:
