@@ -119,7 +119,7 @@ def test_cli_rejects_bad_arguments(archive, tmp_path, capsys):
     assert main(["eval", str(archive), "--random-init", "--methods", "bogus", "--out", str(tmp_path)]) == 1
     assert "unknown method 'bogus'" in capsys.readouterr().err
     assert main(["eval", str(archive), "--params", str(tmp_path / "none.msgpack"), "--out", str(tmp_path)]) == 1
-    assert "no parameter file" in capsys.readouterr().err
+    assert "none.msgpack" in capsys.readouterr().err
 
 
 @pytest.mark.slow

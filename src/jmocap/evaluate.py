@@ -102,24 +102,6 @@ class EvalResult:
 # ---------------------------------------------------------------------------------------
 
 
-def load_method_params(path: str | os.PathLike) -> tuple[dict, CycleConfig]:
-    """Parameters from a msgpack file and the CycleConfig they were trained with: read from a
-    ``config.json`` next to the file (a training run's, key ``cycle``) or ``<name>.json``;
-    the default CycleConfig when neither exists."""
-    from jmocap.weights import cycle_config_from_json, load_params
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no parameter file {path}")
-    params = load_params(path)
-    for cand in (path.with_suffix(".json"), path.parent / "config.json"):
-        if cand.is_file():
-            d = json.loads(cand.read_text())
-            if isinstance(d, dict) and "cycle" in d:
-                return params, cycle_config_from_json(d["cycle"])
-    return params, CycleConfig()
-
-
 def random_params(seed: int, config: CycleConfig | None = None) -> dict:
     """Freshly initialised parameters (smoke tests of the harness; not a method)."""
     return init_params(jax.random.PRNGKey(seed), load_model(with_mjx=False), config or CycleConfig())
@@ -174,7 +156,7 @@ class _Batch:
     clips: list[Clip]  # the real clips (the batch may be padded with repeats of the last)
     inputs: ClipInputs  # (B, L, ...)
     models: Model  # batched estimate models
-    gt: dict[str, np.ndarray]  # (B, L, ...) ground truth, incl. derived quantities
+    gt: list[dict[str, np.ndarray]]  # per real clip: (L, ...) ground truth, incl. derived quantities
     half_width: np.ndarray  # (B,) sole half-width of the estimate models
 
 
@@ -200,20 +182,23 @@ def _prepare(clips: list[Clip], length: int, size: int) -> _Batch:
     layout = padded[0].layout
     gt_q = np.stack([_pad_edge(c.gt_q, length) for c in padded]).astype(np.float32)
     gt_hw = np.array([M.sole_half_width(m) for m in subjects], np.float32)
-    gt = {k: np.asarray(v) for k, v in _batched_quantities(layout)(_stack(subjects), gt_q, fps, gt_hw).items()}
-    gt["keypoints3d"] = np.stack([_pad_edge(c.gt_keypoints3d, length) for c in padded])  # the clip's own
-    for key, fld in (("grf", "gt_grf"), ("tau", "gt_tau"), ("contacts", "gt_contacts")):
-        if all(getattr(c, fld) is not None for c in padded):
-            gt[key] = np.stack([_pad_edge(getattr(c, fld), length) for c in padded])
+    qty = jax.device_get(_batched_quantities(layout)(_stack(subjects), gt_q, fps, gt_hw))
+    gt = []
+    for i, c in enumerate(clips):
+        g = {k: v[i] for k, v in qty.items()}
+        for key, fld in (("keypoints3d", "gt_keypoints3d"), ("grf", "gt_grf"), ("tau", "gt_tau"),
+                         ("contacts", "gt_contacts")):
+            if getattr(c, fld) is not None:  # the clip's own arrays where it has them
+                g[key] = _pad_edge(getattr(c, fld), length)
+        gt.append(g)
     hw = np.array([M.sole_half_width(estimate_model(c)) for c in padded], np.float32)
     return _Batch(clips, inputs, models, gt, hw)
 
 
-def _evaluate_clip(clip: Clip, i: int, pred: dict, gt: dict, length: int, pred_mass: float) -> dict[str, float]:
+def _evaluate_clip(clip: Clip, pred: dict, gt: dict, length: int, pred_mass: float) -> dict[str, float]:
     mask = np.arange(length) < clip.num_frames
-    g = {k: v[i] for k, v in gt.items()}
     return M.evaluate_arrays(
-        pred, g, fps=clip.fps, mask=mask, camera=M.clip_camera(clip), root=clip.layout_spec.root_indices,
+        pred, gt, fps=clip.fps, mask=mask, camera=M.clip_camera(clip), root=clip.layout_spec.root_indices,
         pred_mass=pred_mass, gt_mass=clip.mass_kg or subject_model(clip).total_mass,
     )
 
@@ -298,9 +283,9 @@ def evaluate(
                              for c in batch.clips]
                 bar.update(1)
                 continue
-            for i, (clip, (pred, mass, own)) in enumerate(zip(batch.clips, preds, strict=True)):
+            for clip, gt, (pred, mass, own) in zip(batch.clips, batch.gt, preds, strict=True):
                 try:
-                    per_clip[method][clip.name] = _evaluate_clip(clip, i, pred, batch.gt, length, mass)
+                    per_clip[method][clip.name] = _evaluate_clip(clip, pred, gt, length, mass)
                 except ValueError as e:
                     failures.append({"method": method, "clip": clip.name, "error": str(e)})
                 if clip.name in keep_motions and own:
@@ -330,7 +315,7 @@ def _predict(params, batch: _Batch, cfg: CycleConfig | None) -> list[tuple[dict,
     if cfg is None:  # ground truth through the metrics
         out = []
         for i, c in enumerate(batch.clips):
-            pred = _ground_truth_pred({k: v[i] for k, v in batch.gt.items()})
+            pred = _ground_truth_pred(batch.gt[i])
             out.append((pred, c.mass_kg or subject_model(c).total_mass, {}))
         return out
     motion = _batched_reconstruct()(params, batch.models, batch.inputs, cfg)
@@ -463,23 +448,22 @@ def write_outputs(result: EvalResult, out: str | os.PathLike, title: str = "jmoc
 
 
 def resolve_params(args) -> tuple[dict, CycleConfig, str]:
-    """(params, config, description) from --params / --random-init / the shipped weights."""
+    """(params, config, description) from --params / --random-init / the shipped weights
+    (:func:`jmocap.batch.load_run_params`)."""
+    from jmocap.batch import load_run_params
+
     if args.params and args.random_init:
         raise ValueError("--params and --random-init exclude each other")
     if args.random_init:
         return random_params(args.seed), CycleConfig(), f"random init (seed {args.seed})"
-    if args.params:
-        params, cfg = load_method_params(args.params)
-        return params, cfg, str(args.params)
-    from jmocap.weights import default_params
-
-    params, cfg = default_params()
-    return params, cfg, "shipped default weights"
+    params, cfg = load_run_params(args.params)  # a run's config.json next to the file, if any
+    return params, cfg, str(args.params) if args.params else "shipped default weights"
 
 
 def cmd_eval(args) -> int:
     import sys
 
+    from jmocap.batch import load_run_params
     from jmocap.data.archive import ArchiveError
 
     try:
@@ -494,7 +478,7 @@ def cmd_eval(args) -> int:
             name, _, path = item.partition("=")
             if name not in METHODS or not path:
                 raise ValueError(f"--method-params expects METHOD=PATH with a known method, got {item!r}")
-            own[name] = load_method_params(path)
+            own[name] = load_run_params(path)
         cfg = EvalConfig(methods, args.batch_size, args.max_clips, args.seed, not args.quiet)
         result = evaluate(args.archive, params, base, cfg, method_params=own)
     except (ValueError, FileNotFoundError, ArchiveError) as e:
@@ -516,7 +500,6 @@ __all__ = [
     "cmd_eval",
     "csv_table",
     "evaluate",
-    "load_method_params",
     "markdown_report",
     "markdown_table",
     "method_config",
