@@ -1,0 +1,443 @@
+"""Batch reconstruction (jmocap.batch, ``jmocap reconstruct``), end to end on tiny archives.
+
+The reference for chunking is the whole-clip pipeline, :func:`jmocap.cycle.reconstruct`: a clip
+reconstructed in chunks of 8 frames (state carried, 2W - 1 frames of keypoint history) must
+equal it to float32 rounding. Other checks: mixed input formats in one folder (jmocap clips,
+an OpenPose folder with its camera sidecar, broken files), the manifest and summary, finite
+outputs for clips with undetected frames, NaN outputs reported as failures, resume, zip input,
+a SIGKILLed run that loses nothing and resumes, and two (forced host) devices.
+
+Parameters are freshly initialised and the networks small (iterations=2) to keep compilation
+short; ``root_residual_limit=None`` makes the untrained cycle a stable PD tracker (with the
+limit, untrained networks let the body fall and the simulation is chaotic, so two equal
+computations in float32 drift apart and no tight comparison is possible). A persistent XLA
+cache shared with the subprocesses makes them skip recompiling the same programs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from jax.experimental.compilation_cache import compilation_cache
+
+from jmocap import physics as P
+from jmocap.batch import (
+    DEFAULT_HEIGHT_M,
+    MOTION_FIELDS,
+    RESULT_FORMAT,
+    BatchOptions,
+    check_finite,
+    check_params,
+    chunk_frames,
+    chunk_plan,
+    config_json,
+    history_length,
+    load_run_params,
+    params_sha256,
+    reconstruct_archive,
+    scan_folder,
+)
+from jmocap.cycle import (
+    ClipInputs,
+    CycleConfig,
+    default_extrinsics,
+    init_params,
+    reconstruct,
+    target_pose,
+)
+from jmocap.data.clip import clip_to_arrays, save_clip
+from jmocap.data.formats import write_openpose_folder
+from jmocap.data.synthetic import SynthConfig, generate_clip
+from jmocap.model import load_model
+from jmocap.nets import NetConfig
+
+SMALL = CycleConfig(
+    iterations=2,
+    root_residual_limit=None,
+    nets=NetConfig(tp_width=16, dyn_width=32, grf_width=32, tp_blocks=2),
+)
+OPTS = BatchOptions(chunk=8, bucket=8, batch=2)  # every call: 2 clips x (19 + 8) frames
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# ---------------------------------------------------------------------------------------
+# fixtures
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def xla_cache(tmp_path_factory):
+    """A persistent compilation cache for this module and its subprocesses."""
+    path = str(tmp_path_factory.mktemp("xla_cache"))
+    old = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", path)
+    compilation_cache.reset_cache()
+    yield path
+    jax.config.update("jax_compilation_cache_dir", old)
+    compilation_cache.reset_cache()
+
+
+@pytest.fixture(scope="module")
+def params(xla_cache):
+    # the unsafe_rbg key compiles in a third of threefry's time (the init is RNG-bound)
+    key = jax.random.key(0, impl="unsafe_rbg")
+    return jax.jit(lambda k: init_params(k, load_model(with_mjx=False), SMALL))(key)
+
+
+def synth(index: int, frames: int, **changes):
+    clip = generate_clip(7, index, SynthConfig(frames=frames))
+    return clip.replace(name=f"c{index}", **changes) if changes else clip.replace(name=f"c{index}")
+
+
+@pytest.fixture(scope="module")
+def clips():
+    c = {
+        "short": synth(0, 6),
+        "medium": synth(1, 12),
+        "long": synth(2, 20),  # 3 chunks of 8
+        "bare": synth(3, 7, extrinsics=None, height_m=None),  # default camera, default height
+    }
+    kp = synth(4, 10).keypoints.copy()
+    kp[3:6] = 0.0  # three frames with nothing detected
+    c["undetected_frames"] = synth(4, 10, keypoints=kp)
+    c["openpose"] = synth(5, 8)
+    return c
+
+
+@pytest.fixture(scope="module")
+def input_folder(tmp_path_factory, clips):
+    """Good clips of several formats plus broken ones, loose in a folder (no manifest)."""
+    root = tmp_path_factory.mktemp("input")
+    for name in ("short", "medium", "long", "bare", "undetected_frames"):
+        save_clip(root / f"{name}.npz", clips[name])
+    write_openpose_folder(clips["openpose"], root / "takes" / "op_walk")  # + takes/op_walk.camera.json
+    (root / "broken.npz").write_bytes(b"not a zip file, just garbage " * 20)
+    np.save(root / "wrong_shape.npy", np.zeros((5, 7, 3)))
+    nothing = clips["short"].replace(keypoints=np.zeros_like(clips["short"].keypoints))
+    save_clip(root / "nothing_detected.npz", nothing)
+    arrays = clip_to_arrays(clips["short"])
+    arrays["keypoints"] = arrays["keypoints"].copy()
+    arrays["keypoints"][2, 5, 0] = np.nan
+    np.savez(root / "nan_keypoints.npz", **arrays)
+    (root / "notes.txt").write_text("not a clip")
+    return root
+
+
+GOOD = {"short", "medium", "long", "bare", "undetected_frames", "takes/op_walk"}
+BAD = {"broken", "wrong_shape", "nothing_detected", "nan_keypoints"}
+
+
+def read_manifest(out: Path) -> dict[str, dict]:
+    entries = {}
+    for line in (out / "manifest.jsonl").read_text().splitlines():
+        try:
+            e = json.loads(line)
+        except json.JSONDecodeError:  # a line cut by SIGKILL
+            continue
+        entries[e["name"]] = e
+    return entries
+
+
+@pytest.fixture(scope="module")
+def first_run(xla_cache, params, input_folder, tmp_path_factory):
+    out = tmp_path_factory.mktemp("out")
+    t = time.perf_counter()
+    summary = reconstruct_archive(input_folder, out, params, SMALL, OPTS)
+    return out, summary, time.perf_counter() - t
+
+
+# ---------------------------------------------------------------------------------------
+# the functional core
+# ---------------------------------------------------------------------------------------
+
+
+def test_chunk_plan_and_frames():
+    assert chunk_plan(20, 8, 8) == (8, 8, 8)
+    assert chunk_plan(16, 8, 4) == (8, 8)
+    assert chunk_plan(300, 256, 64) == (256, 64)
+    assert chunk_plan(5, 256, 64) == (64,)
+    assert chunk_plan(250, 256, 64) == (256,)
+    idx, real = chunk_frames(20, 16, 8, 3)
+    np.testing.assert_array_equal(idx, [13, 14, 15, 16, 17, 18, 19, 19, 19, 19, 19])
+    np.testing.assert_array_equal(real, [True] * 7 + [False] * 4)
+    idx, real = chunk_frames(20, 0, 4, 3)
+    np.testing.assert_array_equal(idx, [0, 0, 0, 0, 1, 2, 3])
+    assert not real[:3].any() and real[3:].all()
+
+
+@pytest.mark.slow  # 15 s of compilation; test_chunked_equals_unchunked fails too if the history is short
+def test_tpnet_receptive_field_is_the_history(params):
+    """Frame t of TPNet's target depends on keypoints t - 2(W - 1) .. t (C_T windows C_P's
+    outputs), so a chunk needs 2(W - 1) frames of history (+1 for the kinematic velocity)."""
+    W = SMALL.nets.window
+    assert history_length(SMALL) == 2 * W - 1
+    model = load_model(with_mjx=False)
+    base = ClipInputs.from_clip(synth(6, 2 * W + 2))
+    kp = np.asarray(base.keypoints).copy()
+    kp[0, 2:8, :2] += 40.0  # move the arms in frame 0 (a translation of all joints would leave K_rr)
+    f = jax.jit(lambda x: target_pose(params, model, x, SMALL).q_hat)
+    a, b = np.asarray(f(base)), np.asarray(f(base.replace(keypoints=kp)))
+    t = 2 * (W - 1)
+    assert np.abs(a[t] - b[t]).max() > 1e-6  # frame 2(W-1) still sees frame 0
+    np.testing.assert_array_equal(a[t + 1 :], b[t + 1 :])  # later frames do not
+
+
+def test_check_finite_names_field_and_frame():
+    res = {k: np.zeros((5, 3), np.float32) for k in MOTION_FIELDS}
+    check_finite(res, "clip.npz")
+    res["tau"][3, 1] = np.nan
+    with pytest.raises(ValueError, match=r"clip.npz: frame 3: field 'tau'"):
+        check_finite(res, "clip.npz")
+
+
+def test_config_overrides_and_params_check(tmp_path, params):
+    from jmocap.train import save_params
+
+    path = tmp_path / "params.msgpack"
+    save_params(path, params)
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps(dataclasses.asdict(SMALL)))
+    p, c = load_run_params(path, str(cfg))
+    assert c == SMALL and params_sha256(p) == params_sha256(params)
+    _, c2 = load_run_params(path, '{"cycle": {"iterations": 3, "nets": {"tp_width": 16}}}')
+    assert c2.iterations == 3 and c2.nets.tp_width == 16 and c2.nets.dyn_width == NetConfig().dyn_width
+    with pytest.raises(ValueError, match="unknown CycleConfig fields"):
+        load_run_params(path, '{"iteration": 3}')
+    check_params(p, c)
+    with pytest.raises(ValueError, match=r"do not fit the config: \[.dynet.\]"):
+        check_params(p, c2)
+
+
+def test_scan_folder_names_and_skips(input_folder):
+    sources = {s.name: s for s in scan_folder(input_folder)}
+    assert set(sources) == GOOD | BAD  # no sidecar, no notes.txt
+    assert sources["takes/op_walk"].where.endswith("takes/op_walk")
+
+
+# ---------------------------------------------------------------------------------------
+# an archive run
+# ---------------------------------------------------------------------------------------
+
+
+def test_run_completes_with_the_right_manifest(first_run, input_folder):
+    out, summary, seconds = first_run
+    m = read_manifest(out)
+    assert set(m) == GOOD | BAD
+    assert {n for n, e in m.items() if e["status"] == "ok"} == GOOD
+    assert summary["ok"] == len(GOOD) and summary["failed"] == len(BAD) and summary["pending"] == 0
+    assert summary["run"]["frames"] == sum(m[n]["frames"] for n in GOOD) == summary["frames"]
+    assert json.loads((out / "summary.json").read_text()) == summary
+    assert m["long"]["chunks"] == 3 and m["short"]["chunks"] == 1
+    for n in GOOD:
+        e = m[n]
+        data = (out / e["file"]).read_bytes()
+        assert len(data) == e["bytes"] and hashlib.sha256(data).hexdigest() == e["sha256"]
+        assert e["seconds"] >= 0
+    # failures name the file and what is wrong with it, and nothing is written for them
+    err = {n: m[n]["error"] for n in BAD}
+    assert "broken.npz" in err["broken"] and "not a readable .npz" in err["broken"]
+    assert "wrong_shape.npy" in err["wrong_shape"] and "(5, 7, 3)" in err["wrong_shape"]
+    assert "nothing_detected.npz" in err["nothing_detected"] and "field 'keypoints'" in err["nothing_detected"]
+    assert "nan_keypoints.npz" in err["nan_keypoints"] and "frame 2" in err["nan_keypoints"]
+    assert not any((out / f"{n}.npz").exists() for n in BAD)
+    assert not list(out.rglob("*.tmp"))
+
+
+def test_results_follow_the_schema(first_run, clips, params):
+    out, _, _ = first_run
+    model = load_model(with_mjx=False)
+    names = {"short": "short", "long": "long", "bare": "bare", "takes/op_walk": "openpose",
+             "undetected_frames": "undetected_frames", "medium": "medium"}
+    for name, key in names.items():
+        clip = clips[key]
+        r = np.load(out / f"{name}.npz")
+        T = clip.num_frames
+        assert str(r["format"]) == RESULT_FORMAT and str(r["layout"]) == "body25"
+        assert r["q"].shape == (T, model.nq) and r["target_q"].shape == (T, model.nq)
+        assert r["qd"].shape == r["tau"].shape == (T, model.nv)
+        assert r["grf"].shape == (T, 4, 3) and r["contact_prob"].shape == (T, 4)
+        assert r["keypoints3d"].shape == (T, 25, 3)
+        for k in MOTION_FIELDS:
+            assert r[k].dtype == np.float32 and np.isfinite(r[k]).all(), (name, k)
+        np.testing.assert_allclose(r["keypoints2d"], clip.keypoints, atol=1e-4)  # OpenPose JSON: 1e-4 px
+        np.testing.assert_allclose(r["intrinsics"], clip.intrinsics)
+        np.testing.assert_array_equal(r["image_size"], clip.image_size)
+        ext = clip.extrinsics if clip.extrinsics is not None else default_extrinsics()
+        np.testing.assert_allclose(r["extrinsics"], ext, atol=1e-6)
+        height = None if name.startswith("takes/") else clip.height_m  # OpenPose has no height
+        want_h = DEFAULT_HEIGHT_M if height is None else round(height, 2)
+        assert float(r["height_m"]) == pytest.approx(want_h)
+        assert float(r["fps"]) == clip.fps
+        assert str(r["config"]) == config_json(SMALL)
+        assert str(r["params_sha256"]) == params_sha256(params)
+        assert len(str(r["model_sha256"])) == 64 and str(r["version"])
+    assumed = json.loads(str(np.load(out / "bare.npz")["assumed"]))
+    assert {"extrinsics", "height_m"} <= set(assumed)
+    export = pytest.importorskip("jmocap.export")
+    res = export.load_result(out / "long.npz")  # the project's reader of result files
+    assert res["q"].shape == (20, model.nq) and res["layout"] == "body25"
+
+
+def test_chunked_equals_unchunked(first_run, clips, params):
+    """The 20-frame clip, reconstructed in chunks of 8, equals jmocap.cycle.reconstruct on
+    the whole clip (float32: rounding differences, relative to each field's magnitude)."""
+    out, _, _ = first_run
+    clip = clips["long"]
+    r = np.load(out / "long.npz")
+    model = load_model(height_m=float(r["height_m"]), with_mjx=False)
+    ref = jax.jit(lambda p, m, x: reconstruct(p, m, x, SMALL))(params, model, ClipInputs.from_clip(clip))
+    kp3d = jax.vmap(lambda q: P.keypoints(model, q, "body25"))(ref.q)
+    want = dict(q=ref.q, qd=ref.qd, tau=ref.tau, grf=ref.grf, contact_prob=ref.contact_prob,
+                target_q=ref.target_q, keypoints3d=kp3d)
+    for k in MOTION_FIELDS:
+        w = np.asarray(want[k])
+        scale = float(np.abs(w).max()) + 1e-3
+        np.testing.assert_allclose(r[k], w, rtol=0, atol=1e-4 * scale, err_msg=k)
+
+
+def test_resume_skips_finished_clips_and_redoes_missing_ones(first_run, params, input_folder):
+    out, _, _ = first_run
+    before = read_manifest(out)
+    mtimes = {n: (out / before[n]["file"]).stat().st_mtime_ns for n in GOOD}
+    s = reconstruct_archive(input_folder, out, params, SMALL, OPTS)
+    assert s["run"]["ok"] == 0 and s["run"]["skipped"] == len(GOOD)
+    assert s["run"]["failed"] == len(BAD)  # failed clips are retried (and fail again)
+    assert all((out / before[n]["file"]).stat().st_mtime_ns == mtimes[n] for n in GOOD)
+    (out / "medium.npz").unlink()  # a lost result is recomputed, bit for bit
+    s = reconstruct_archive(input_folder, out, params, SMALL, OPTS)
+    assert s["run"]["ok"] == 1 and s["ok"] == len(GOOD)
+    assert read_manifest(out)["medium"]["sha256"] == before["medium"]["sha256"]
+    with pytest.raises(ValueError, match="different settings"):  # never mix two configurations
+        reconstruct_archive(input_folder, out, params, dataclasses.replace(SMALL, iterations=3), OPTS)
+
+
+def test_zip_input_gives_the_same_results(first_run, params, input_folder, tmp_path):
+    out, _, _ = first_run
+    zpath = tmp_path / "clips.zip"
+    with zipfile.ZipFile(zpath, "w") as z:
+        for p in sorted(input_folder.rglob("*")):
+            if p.is_file():
+                z.write(p, p.relative_to(input_folder).as_posix())
+    s = reconstruct_archive(zpath, tmp_path / "out", params, SMALL, OPTS)
+    assert s["ok"] == len(GOOD) and s["failed"] == len(BAD)
+    m = read_manifest(tmp_path / "out")
+    assert m["broken"]["error"].startswith(f"{zpath}:broken.npz")  # named inside the zip
+    for n in GOOD:
+        a, b = np.load(out / f"{n}.npz"), np.load(tmp_path / "out" / f"{n}.npz")
+        for k in MOTION_FIELDS:
+            np.testing.assert_array_equal(a[k], b[k])
+
+
+def test_non_finite_reconstruction_is_a_failure(first_run, params, clips, tmp_path):
+    """NaN parameters (traced: the first run's compiled program) make every output NaN."""
+    src = tmp_path / "in"
+    src.mkdir()
+    save_clip(src / "a.npz", clips["short"])
+    bad = jax.tree.map(lambda x: x, params)
+    bad["tpnet"]["params"]["c_trans"]["Dense_0"]["bias"] = np.full_like(
+        np.asarray(bad["tpnet"]["params"]["c_trans"]["Dense_0"]["bias"]), np.nan
+    )
+    s = reconstruct_archive(src, tmp_path / "out", bad, SMALL, OPTS)
+    assert s["ok"] == 0 and s["failed"] == 1
+    err = read_manifest(tmp_path / "out")["a"]["error"]
+    assert "a.npz: frame 0: field 'q'" in err and "not finite" in err
+    assert not (tmp_path / "out" / "a.npz").exists()
+
+
+# ---------------------------------------------------------------------------------------
+# the command line in subprocesses: SIGKILL + resume, two devices
+# ---------------------------------------------------------------------------------------
+
+
+def cli(tmp_path, params, *extra, cache, env=None):
+    from jmocap.train import save_params
+
+    p = tmp_path / "params.msgpack"
+    if not p.exists():
+        save_params(p, params)
+        (tmp_path / "cfg.json").write_text(json.dumps(dataclasses.asdict(SMALL)))
+    cmd = [sys.executable, "-m", "jmocap.cli", "reconstruct", *map(str, extra), "--params", str(p),
+           "--config", str(tmp_path / "cfg.json"), "--chunk", "8", "--bucket", "8", "--quiet",
+           "--cache-dir", cache]
+    return cmd, {**os.environ, "PYTHONPATH": str(ROOT / "src"), **(env or {})}
+
+
+def test_sigkill_loses_nothing_and_the_rerun_completes(xla_cache, first_run, params, tmp_path):
+    src, out = tmp_path / "in", tmp_path / "out"
+    src.mkdir()
+    n = 24
+    for i in range(n):
+        save_clip(src / f"k{i:02d}.npz", synth(20 + i, 6 + i % 3))
+    cmd, env = cli(tmp_path, params, src, out, "--batch", "2", cache=xla_cache)
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.time() + 300
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if (out / "manifest.jsonl").exists() and any(
+                e["status"] == "ok" for e in read_manifest(out).values()
+            ):
+                break
+            time.sleep(0.005)
+        assert proc.poll() is None, f"the run ended before it could be killed: {proc.stderr.read().decode()}"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    done = {k: e for k, e in read_manifest(out).items() if e["status"] == "ok"}
+    assert 0 < len(done) < n
+    for e in done.values():  # every recorded result is complete
+        data = (out / e["file"]).read_bytes()
+        assert hashlib.sha256(data).hexdigest() == e["sha256"]
+        assert np.isfinite(np.load(out / e["file"])["q"]).all()
+    rerun = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    after = read_manifest(out)
+    assert len(after) == n and all(e["status"] == "ok" for e in after.values())
+    assert all(after[k]["sha256"] == e["sha256"] for k, e in done.items())  # untouched
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ok"] == n and summary["run"]["skipped"] == len(done)
+    assert f"{n}/{n} clips ok" in rerun.stdout
+
+
+@pytest.mark.slow  # compiles the sharded program in a subprocess (30 s on 2 busy cores)
+def test_two_devices_shard_the_batch(xla_cache, first_run, params, input_folder, tmp_path):
+    """Two forced host devices, one clip each per call (kinematic mode, whose q is the target
+    pose that the one-device run also returns)."""
+    out1, _, _ = first_run
+    out = tmp_path / "out"
+    cmd, env = cli(tmp_path, params, input_folder, out, "--batch", "1", "--kinematic-only",
+                   cache=xla_cache, env={"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
+    run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 1, run.stderr  # the broken clips fail, as on one device
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["devices"]) == 2
+    assert summary["ok"] == len(GOOD) and summary["failed"] == len(BAD)
+    for n in GOOD:
+        a, b = np.load(out / f"{n}.npz"), np.load(out1 / f"{n}.npz")
+        np.testing.assert_allclose(a["q"], b["target_q"], rtol=0, atol=1e-4 * (np.abs(b["target_q"]).max() + 1))
+        assert np.all(a["tau"] == 0) and json.loads(str(a["config"]))["kinematic_only"]
+
+
+def test_openpose_folder_as_the_whole_input(xla_cache, first_run, params, clips, tmp_path):
+    """An OpenPose --write_json folder given directly as INPUT is one clip."""
+    folder = tmp_path / "video01"
+    write_openpose_folder(clips["openpose"], folder)
+    s = reconstruct_archive(folder, tmp_path / "out", params, SMALL, OPTS)
+    assert s["ok"] == 1 and s["clips"] == 1
+    r = np.load(tmp_path / "out" / "video01.npz")
+    np.testing.assert_allclose(r["intrinsics"], clips["openpose"].intrinsics)  # from the sidecar
+    shutil.rmtree(folder)
