@@ -8,9 +8,11 @@ paper is silent.
 
 Conventions
 -----------
-* Every metric is pure ``jax.numpy``: it runs eagerly, under ``jax.jit`` and under ``jax.vmap``.
-  Arrays have any leading batch dimensions, then frames: joints ``(..., T, J, 3)`` in metres in
-  the z-up world (floor z = 0), foot points ``(..., T, P, 3)``, contact labels ``(..., T, P)``.
+* Every metric is pure ``jax.numpy`` wrapped in ``jax.jit`` (options that shape the computation,
+  ``align``, ``root``, ``steps``, are static), so it composes with ``jit`` and ``vmap``
+  and compiles once per shape. Arrays have any leading batch dimensions, then frames: joints
+  ``(..., T, J, 3)`` in metres in the z-up world (floor z = 0), foot points ``(..., T, P, 3)``,
+  contact labels ``(..., T, P)``; per-clip scalars (fps, weights) are () or the batch shape.
 * ``mask`` (``(..., T)`` bool, default all True) marks the real frames; a metric averages over
   real frames only. A finite difference is used only where every frame it reads is real.
 * A metric whose selection is empty (no real frame, no in-contact frame, no flight frame, ...)
