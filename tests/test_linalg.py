@@ -73,3 +73,8 @@ def test_no_lapack_custom_call_in_the_compiled_program():
     M = spd(np.random.default_rng(3), (4,), 10).astype(np.float32)
     hlo = jax.jit(jax.vmap(lambda m: la.cho_solve(la.cholesky(m), jnp.eye(10)))).lower(M).as_text()
     assert "lapack" not in hlo and "custom_call" not in hlo
+
+
+def test_det3(enable_x64):
+    A = np.random.default_rng(4).normal(size=(6, 3, 3))
+    np.testing.assert_allclose(la.det3(A), np.linalg.det(A), atol=1e-12)

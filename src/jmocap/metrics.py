@@ -41,6 +41,7 @@ from jmocap import physics as P
 from jmocap.camera import Camera, project
 from jmocap.model import Model
 from jmocap.numerics import safe_div, safe_normalize
+from jmocap.physics.linalg import det3
 from jmocap.physics.rotations import quat_to_mat
 
 Array = jnp.ndarray
@@ -170,7 +171,8 @@ def procrustes_align(pred: Array, gt: Array) -> Array:
     X, Y = pred - mp, gt - mg
     H = jnp.swapaxes(X, -1, -2) @ Y  # sum_j x_j y_j^T
     U, S, Vt = jnp.linalg.svd(H)
-    d = jnp.where(jnp.linalg.det(U @ Vt) < 0, -1.0, 1.0).astype(pred.dtype)
+    # det in closed form: one LAPACK call (the SVD) per program, never two at once (linalg docs)
+    d = jnp.where(det3(U @ Vt) < 0, -1.0, 1.0).astype(pred.dtype)
     c = jnp.concatenate([jnp.ones(d.shape + (2,), pred.dtype), d[..., None]], -1)  # diag(1, 1, d)
     R = jnp.swapaxes(Vt, -1, -2) @ (c[..., :, None] * jnp.swapaxes(U, -1, -2))
     s = safe_div(jnp.sum(c * S, -1), jnp.sum(X * X, axis=(-1, -2)))

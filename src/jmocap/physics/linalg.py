@@ -167,4 +167,9 @@ def solve_spd3(A: Array, b: Array) -> Array:
     return jnp.einsum("...ij,...j->...i", adj, b) / det[..., None]
 
 
-__all__ = ["cho_solve", "cholesky", "solve_lower", "solve_spd3", "solve_upper"]
+def det3(A: Array) -> Array:
+    """Determinant of (..., 3, 3) matrices in closed form (no LAPACK LU)."""
+    return jnp.sum(A[..., 0, :] * jnp.cross(A[..., 1, :], A[..., 2, :]), -1)
+
+
+__all__ = ["cho_solve", "cholesky", "det3", "solve_lower", "solve_spd3", "solve_upper"]
