@@ -32,6 +32,7 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(PY) experiments/bench_physics.py
 	$(PY) experiments/bench_projection.py
+	$(PY) experiments/bench_reconstruct.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache
