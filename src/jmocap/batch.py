@@ -44,10 +44,12 @@ import tarfile
 import tempfile
 import time
 import zipfile
+from collections import deque
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
-from functools import partial
+from functools import lru_cache, partial
 from pathlib import Path, PurePosixPath
 from typing import Any
 
@@ -200,7 +202,7 @@ class Reconstructor:
     ``params`` and ``config`` are fixed for the life of the object (the compiled code is cached
     per chunk shape by :func:`reconstruct_chunks`); characters are scaled to each clip's
     ``height_m`` (rounded to ``height_bucket_m``; :data:`DEFAULT_HEIGHT_M` when the clip has
-    none) and cached.
+    none), loaded once per height.
     """
 
     def __init__(
@@ -225,7 +227,6 @@ class Reconstructor:
         self.params = jax.device_put(params, NamedSharding(mesh, PartitionSpec()))
         self.group_size = self.batch * len(self.devices)
         self.history = history_length(config)
-        self._models: dict[float, Model] = {}
 
     def model_height(self, clip: Clip) -> float:
         """The height (m) of the character a clip is reconstructed with."""
@@ -235,11 +236,7 @@ class Reconstructor:
         return round(round(clip.height_m / step) * step, 6) if step > 0 else float(clip.height_m)
 
     def model(self, height_m: float) -> Model:
-        if height_m not in self._models:
-            self._models[height_m] = load_model(
-                height_m=None if height_m == DEFAULT_HEIGHT_M else height_m, with_mjx=False
-            )
-        return self._models[height_m]
+        return _character(height_m)
 
     def plan(self, clip: Clip) -> tuple[int, ...]:
         return chunk_plan(clip.num_frames, self.chunk, self.bucket)
@@ -267,29 +264,34 @@ class Reconstructor:
         if any(self.plan(c) != plan for c in clips):
             raise ValueError("the clips of a group must share one chunk plan")
         rows = list(clips) + [clips[0]] * (self.group_size - len(clips))
-        models = _stack([self.model(self.model_height(c)) for c in rows])
-        whole = [ClipInputs.from_clip(c) for c in rows]  # unpadded; the chunks index into it
-        models = jax.device_put(models, self._rows)
-        m0 = self.model(DEFAULT_HEIGHT_M)
-        G = self.group_size
+        H, G = self.history, self.group_size
+        # every row's keypoints over the whole plan at once, history in front; chunk c is then
+        # the slice [start_c, start_c + H + L_c) (chunk_frames of each chunk)
+        kp, real = [], []
+        for c in rows:
+            idx, r = chunk_frames(c.num_frames, 0, sum(plan), H)
+            kp.append(np.asarray(c.keypoints, np.float32)[idx])
+            real.append(r)
+        kp, real = np.stack(kp), np.stack(real)
+        whole = _stack([ClipInputs.from_clip(c).replace(keypoints=None, mask=None) for c in rows])
+        models, whole = jax.device_put(
+            (_stack([self.model(self.model_height(c)) for c in rows]), whole), self._rows
+        )
+        nq, nv = models.qpos0.shape[1], models.dof_armature.shape[1]
         carry = jax.device_put(
-            CycleState(
-                np.zeros((G, m0.nq), np.float32),
-                np.zeros((G, m0.nv), np.float32),
-                np.zeros((G, 4, 3), np.float32),
-            ),
+            CycleState(np.zeros((G, nq), np.float32), np.zeros((G, nv), np.float32),
+                       np.zeros((G, 4, 3), np.float32)),
             self._rows,
         )
         fetched, pending, start = [], None, 0
         for c, length in enumerate(plan):
-            chunk_inputs = []
-            for x in whole:
-                idx, real = chunk_frames(x.keypoints.shape[0], start, length, self.history)
-                chunk_inputs.append(x.replace(keypoints=x.keypoints[idx], mask=real))
-            inputs = jax.device_put(_stack(chunk_inputs), self._rows)
-            first = jax.device_put(np.full(G, c == 0), self._rows)
+            window = slice(start, start + H + length)
+            keypoints, mask, first = jax.device_put(
+                (kp[:, window], real[:, window], np.full(G, c == 0)), self._rows
+            )
             carry, res = reconstruct_chunks(
-                self.params, models, inputs, carry, first, config=self.config, history=self.history
+                self.params, models, whole.replace(keypoints=keypoints, mask=mask), carry, first,
+                config=self.config, history=H,
             )
             if pending is not None:  # fetch the previous chunk while this one runs
                 fetched.append(_fields(jax.device_get(pending)))
@@ -299,6 +301,12 @@ class Reconstructor:
             {k: np.concatenate([f[k][i] for f in fetched])[: c.num_frames] for k in MOTION_FIELDS}
             for i, c in enumerate(clips)
         ]
+
+
+@lru_cache(maxsize=256)
+def _character(height_m: float) -> Model:
+    """The humanoid scaled to ``height_m`` (immutable, so shared by every engine)."""
+    return load_model(height_m=None if height_m == DEFAULT_HEIGHT_M else height_m, with_mjx=False)
 
 
 def _fields(res: ChunkResult) -> dict[str, np.ndarray]:
@@ -707,77 +715,87 @@ def reconstruct_archive(
         height_bucket_m=options.height_bucket_m, devices=devices,
     )
     run = {"ok": 0, "failed": 0, "frames": 0}
-    with open_sources(input, image_size=options.image_size) as sources, ResultWriter(output, settings) as writer:
+    with (
+        open_sources(input, image_size=options.image_size) as sources,
+        ResultWriter(output, settings) as writer,
+        ThreadPoolExecutor(1, thread_name_prefix="jmocap-write") as io,
+    ):
         todo = [s for s in sources if not writer.done(s.name, bvh=options.bvh)]
         skipped = len(sources) - len(todo)
         if options.max_clips is not None:
             todo = todo[: options.max_clips]
         bar = progress(len(todo)) if progress is not None else None
+        # Every manifest line, counter and progress update happens on the one `io` thread, in
+        # submission order, so results are written while the next batch computes.
+        inflight: deque[Future] = deque()
 
-        def failed(source: Source, error: BaseException | str, seconds: float, **extra):
-            msg = error if isinstance(error, str) else _message(error, source.where)
-            writer.add_failure(source.name, msg, source=source.where, seconds=round(seconds, 4), **extra)
+        def submit(fn, *args, **kwargs):
+            inflight.append(io.submit(fn, *args, **kwargs))
+            while len(inflight) > 2 * engine.group_size:  # bounded: at most ~2 batches queued
+                inflight.popleft().result()
+
+        def record_failure(source: Source, error: BaseException, seconds: float, **extra):
+            writer.add_failure(source.name, _message(error, source.where), source=source.where,
+                               seconds=round(seconds, 4), **extra)
             run["failed"] += 1
             if bar is not None:
                 bar.update(1)
+
+        def write_result(it: _Item, res: dict[str, np.ndarray], share: float):
+            t = time.perf_counter()
+            clip, src = it.clip, it.source
+            try:
+                check_finite(res, src.where)
+                height = engine.model_height(clip)
+                arrays = result_arrays(clip, res, height_m=height, identity=identity, source=src.where,
+                                       assumed=assumed_fields(clip))
+                extra = {}
+                if write_bvh is not None:
+                    extra["bvh"] = _write_bvh(write_bvh, writer.root, src.name, engine.model(height),
+                                              res["q"], clip.fps)
+                writer.add_result(
+                    src.name, arrays, frames=clip.num_frames, fps=clip.fps, layout=clip.layout,
+                    height_m=height, source=src.where, chunks=len(engine.plan(clip)),
+                    seconds=round(it.seconds + share + time.perf_counter() - t, 4), **extra,
+                )
+            except Exception as e:  # noqa: BLE001 - a batch run records failures and goes on
+                record_failure(src, e, it.seconds + share + time.perf_counter() - t, frames=clip.num_frames)
+                return
+            run["ok"] += 1
+            run["frames"] += clip.num_frames
+            if bar is not None:
+                bar.update(1, clip.num_frames)
 
         def compute(group: list[_Item]):
             t = time.perf_counter()
             try:
                 results = engine.run_group([it.clip for it in group])
-            except Exception as e:  # noqa: BLE001 - a batch run records failures and goes on
+            except Exception as e:  # noqa: BLE001
                 share = (time.perf_counter() - t) / len(group)
                 for it in group:
-                    failed(it.source, e, it.seconds + share, frames=it.clip.num_frames)
+                    submit(record_failure, it.source, e, it.seconds + share, frames=it.clip.num_frames)
                 return
             share = (time.perf_counter() - t) / len(group)
             for it, res in zip(group, results, strict=True):
-                tw = time.perf_counter()
-                clip, src = it.clip, it.source
-                try:
-                    check_finite(res, src.where)
-                    height = engine.model_height(clip)
-                    arrays = result_arrays(
-                        clip, res, height_m=height, identity=identity, source=src.where,
-                        assumed=assumed_fields(clip),
-                    )
-                    extra = {}
-                    if write_bvh is not None:
-                        extra["bvh"] = _write_bvh(
-                            write_bvh, writer.root, src.name, engine.model(height), res["q"], clip.fps
-                        )
-                    seconds = it.seconds + share + time.perf_counter() - tw
-                    writer.add_result(
-                        src.name, arrays, frames=clip.num_frames, fps=clip.fps, layout=clip.layout,
-                        height_m=height, source=src.where, chunks=len(engine.plan(clip)),
-                        seconds=round(seconds, 4), **extra,
-                    )
-                except Exception as e:  # noqa: BLE001
-                    failed(src, e, it.seconds + share + time.perf_counter() - tw, frames=clip.num_frames)
-                    continue
-                run["ok"] += 1
-                run["frames"] += clip.num_frames
-                if bar is not None:
-                    bar.update(1, clip.num_frames)
+                submit(write_result, it, res, share)
 
         pending: dict[tuple[int, ...], list[_Item]] = {}
         capacity = options.pool or 16 * engine.group_size
-        for src in todo:
-            t = time.perf_counter()
-            try:
-                clip = src.load()
-                check_clip(clip, config, src.where)
-            except Exception as e:  # noqa: BLE001
-                failed(src, e, time.perf_counter() - t)
+        for src, clip, seconds in _read_ahead(todo, config, depth=engine.group_size):
+            if isinstance(clip, BaseException):
+                submit(record_failure, src, clip, seconds)
                 continue
-            group = pending.setdefault(engine.plan(clip), [])
-            group.append(_Item(src, clip, time.perf_counter() - t))
+            plan = engine.plan(clip)
+            group = pending.setdefault(plan, [])
+            group.append(_Item(src, clip, seconds))
             if len(group) == engine.group_size:
-                compute(pending.pop(engine.plan(clip)))
+                compute(pending.pop(plan))
             elif sum(map(len, pending.values())) > capacity:  # bounded memory: run the fullest
                 compute(pending.pop(max(pending, key=lambda k: len(pending[k]))))
-        for key in sorted(pending, key=lambda k: (len(k), k)):
-            compute(pending[key])
+        for plan in sorted(pending, key=lambda k: (len(k), k)):
+            compute(pending[plan])
+        while inflight:
+            inflight.popleft().result()  # re-raises what could not even be recorded
         if bar is not None:
             bar.close()
         names = [s.name for s in sources]
@@ -807,6 +825,31 @@ def reconstruct_archive(
     }
     _atomic_write(Path(output) / SUMMARY, (json.dumps(summary, indent=2) + "\n").encode())
     return summary
+
+
+def _read_ahead(sources: Sequence[Source], config: CycleConfig, depth: int):
+    """``(source, clip or the exception that reading it raised, seconds)`` in order, read
+    ``depth`` clips ahead on a thread (file reads and decompression overlap the compute)."""
+
+    def load(src: Source):
+        t = time.perf_counter()
+        try:
+            clip = src.load()
+            check_clip(clip, config, src.where)
+        except Exception as e:  # noqa: BLE001 - recorded as the clip's failure
+            clip = e
+        return clip, time.perf_counter() - t
+
+    with ThreadPoolExecutor(1, thread_name_prefix="jmocap-read") as ex:
+        queue: deque = deque()
+        for src in sources:
+            queue.append((src, ex.submit(load, src)))
+            if len(queue) > depth:
+                src0, fut = queue.popleft()
+                yield (src0, *fut.result())
+        while queue:
+            src0, fut = queue.popleft()
+            yield (src0, *fut.result())
 
 
 def _message(error: BaseException, where: str) -> str:
