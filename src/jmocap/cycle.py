@@ -37,6 +37,7 @@ from jmocap.model import Model
 from jmocap.motion import Motion
 from jmocap.nets import DyNet, GRFNet, NetConfig, TPNet, rot6d_to_mat
 from jmocap.physics.contact import project_friction_pyramid
+from jmocap.physics.linalg import solve_spd3
 from jmocap.physics.rotations import mat_to_quat, quat_error
 
 Array = jnp.ndarray
@@ -60,6 +61,7 @@ class CycleConfig:
     metric: str = "mass"  # projection metric: "mass" or "identity" (eq. 15)
     beta: float = 0.2  # penetration recovery factor of the projection
     contact_threshold: float = 0.5
+    max_velocity: float = 30.0  # |qd| bound (rad/s, m/s) before the projection; keeps states finite
     mu: float = 0.8  # friction coefficient (paper Sec. 3.4.2)
     # soft limit of the residual (virtual) root force, in body weights (the torque limit is the
     # same times 1 m); None applies any residual, as eqs. 7 + 13 literally (docs/method.md)
@@ -253,7 +255,7 @@ def least_squares_translation(p_rr: Array, k_c: Array, prior_depth: float = 4.0,
     prior = jnp.array([0.0, 0.0, prior_depth], p_rr.dtype)
     AtA = (A * w[:, None]).T @ A + prior_weight * jnp.eye(3, dtype=p_rr.dtype)
     Atb = (A * w[:, None]).T @ b + prior_weight * prior
-    return jnp.linalg.solve(AtA, Atb)
+    return solve_spd3(AtA, Atb)
 
 
 # ---------------------------------------------------------------------------------------
@@ -373,6 +375,7 @@ def cycle_step(
     L = P.cholesky(M)
     qdd = P.cho_solve(L, tau_star + JtG - h)  # eq. 13
     qd_free = qd + dt * qdd  # eq. 14
+    qd_free = jnp.clip(qd_free, -config.max_velocity, config.max_velocity)
     if config.hard_constraint:
         Minv = P.mass_inverse(L) if config.metric == "mass" else None
         qd_new = P.project_velocity(
