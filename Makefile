@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) experiments/bench_physics.py --quick
+	$(PY) -m jmocap.cli demo --out demo_out
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -9,8 +9,10 @@ is one decorated function::
         p.add_argument("--frames", type=int, default=100)
         p.set_defaults(func=run_demo)     # run_demo(args) -> int | None
 
-Commands so far: ``data synth`` (synthetic clip archives), ``data info`` (summarise an
-archive).
+Commands: ``data synth`` (synthetic clip archives), ``data info`` (summarise an archive),
+``reconstruct`` (batch reconstruction of an archive), ``eval`` (the metrics table of methods
+over an archive with ground truth), ``render`` (video and force plots of a result) and
+``demo`` (all of it on the shipped sample).
 """
 
 from __future__ import annotations
@@ -394,6 +396,34 @@ def cmd_reconstruct(args) -> int:
     from jmocap.batch import run_cli
 
     return run_cli(args)
+
+
+@command("demo", "reconstruct, score and render the sample shipped in the package")
+def _demo(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Run the whole pipeline on the shipped sample (three synthetic clips as OpenPose JSON, "
+        "with ground truth) with the shipped default weights: result .npz and BVH per clip, "
+        "metrics against the ground truth (physionical vs kinematic), a video of the walking "
+        "clip and its force plot, all in OUT."
+    )
+    p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
+    p.add_argument("--params", help="parameters (.msgpack); default: the shipped weights")
+    p.add_argument("--no-render", action="store_true", help="skip the video and the force plot")
+    p.add_argument("--cache-dir", default=_xla_cache_dir(), metavar="DIR",
+                   help="persistent XLA compilation cache ('' for none; default %(default)s)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_demo)
+
+
+def cmd_demo(args) -> int:
+    import jax
+
+    from jmocap.demo import run_demo
+
+    if args.cache_dir and not jax.config.jax_compilation_cache_dir:
+        jax.config.update("jax_compilation_cache_dir", args.cache_dir)
+    run_demo(args.out, params_path=args.params, render=not args.no_render, progress=not args.quiet)
+    return 0
 
 
 if __name__ == "__main__":
