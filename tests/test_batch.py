@@ -221,10 +221,15 @@ def test_config_overrides_and_params_check(tmp_path, params):
         check_params(p, c2)
 
 
-def test_scan_folder_names_and_skips(input_folder):
+def test_scan_folder_names_and_skips(input_folder, tmp_path):
     sources = {s.name: s for s in scan_folder(input_folder)}
     assert set(sources) == GOOD | BAD  # no sidecar, no notes.txt
     assert sources["takes/op_walk"].where.endswith("takes/op_walk")
+    inner = tmp_path / "in"
+    shutil.copytree(input_folder, inner)
+    (inner / "out").mkdir()
+    (inner / "out" / "short.npz").write_bytes(b"a result")
+    assert {s.name for s in scan_folder(inner, exclude=inner / "out")} == GOOD | BAD
 
 
 # ---------------------------------------------------------------------------------------

@@ -440,6 +440,9 @@ class ResultWriter(ArchiveWriter):
 
     def add_result(self, name: str, arrays: dict[str, np.ndarray], **extra: Any) -> dict[str, Any]:
         """Write ``<name>.npz`` atomically, then its manifest line; returns the line."""
+        parts = PurePosixPath(name).parts
+        if not parts or name.startswith("/") or any(p in ("..", ".") for p in parts):
+            raise ArchiveError(f"clip name {name!r} cannot be a file name under the output folder")
         data = npz_bytes(arrays)
         rel = f"{name}.npz"
         path = self.root / rel
@@ -475,7 +478,12 @@ def _is_container(path: Path) -> bool:
 
 
 @contextmanager
-def open_sources(path: str | os.PathLike, *, image_size: Sequence[int] | None = None) -> Iterator[list[Source]]:
+def open_sources(
+    path: str | os.PathLike,
+    *,
+    image_size: Sequence[int] | None = None,
+    exclude: str | os.PathLike | None = None,
+) -> Iterator[list[Source]]:
     """The clips of an input (a context manager: a ``.zip`` / ``.tar`` of loose files is
     extracted to a temporary folder for its duration).
 
@@ -483,7 +491,8 @@ def open_sources(path: str | os.PathLike, *, image_size: Sequence[int] | None = 
     * a folder (or a zip / tar of one): every clip under it (:func:`scan_folder`);
     * a single clip file or OpenPose folder.
 
-    ``image_size`` is the ``(width, height)`` assumed for clips whose file and sidecar give none.
+    ``image_size`` is the ``(width, height)`` assumed for clips whose file and sidecar give none;
+    ``exclude``: a folder inside the input that holds no clips (the output).
     """
     path = Path(path)
     if not path.exists():
@@ -500,7 +509,7 @@ def open_sources(path: str | os.PathLike, *, image_size: Sequence[int] | None = 
             _extract(path, Path(tmp))
             yield scan_folder(Path(tmp), image_size=image_size, label=f"{path}:")
         return
-    yield scan_folder(path, image_size=image_size)
+    yield scan_folder(path, image_size=image_size, exclude=exclude)
 
 
 def _has_manifest(path: Path) -> bool:
@@ -525,7 +534,11 @@ def _extract(path: Path, dest: Path) -> None:
 
 
 def scan_folder(
-    root: str | os.PathLike, *, image_size: Sequence[int] | None = None, label: str | None = None
+    root: str | os.PathLike,
+    *,
+    image_size: Sequence[int] | None = None,
+    label: str | None = None,
+    exclude: str | os.PathLike | None = None,
 ) -> list[Source]:
     """Every clip under ``root``, in sorted path order: a folder holding ``*_keypoints.json``
     files is one OpenPose clip; every other ``.npz`` / ``.npy`` / ``.json`` file is one clip
@@ -534,8 +547,10 @@ def scan_folder(
 
     Names are paths relative to ``root`` without the suffix (``walk/take1.json`` ->
     ``walk/take1``); ``label`` replaces ``root`` in messages (e.g. the zip file's name).
+    ``exclude`` is a folder not to look into (the output folder, when it is inside the input).
     """
     root = Path(root)
+    skip = Path(exclude).resolve() if exclude is not None else None
     prefix = label if label is not None else ""
     found: list[tuple[str, Path]] = []
 
@@ -548,7 +563,8 @@ def scan_folder(
             if p.name.startswith("."):
                 continue
             if p.is_dir():
-                walk(p)
+                if skip is None or p.resolve() != skip:
+                    walk(p)
             elif p.suffix.lower() in (".npz", ".npy") or (
                 p.suffix.lower() == ".json" and p.name not in _NOT_CLIPS and not p.name.endswith(".camera.json")
             ):
@@ -638,9 +654,8 @@ class _LastFile:
 
     def load(self, path: Path, seq: str, image_size) -> Clip:
         if self.path != path:
-            self.path, self.seqs = None, {}
-            self.seqs = {kp.name: kp for kp in formats.iter_videopose3d(path)}
-            self.path = path
+            self.path, self.seqs = None, {}  # (a failed read leaves nothing behind)
+            self.seqs, self.path = {kp.name: kp for kp in formats.iter_videopose3d(path)}, path
         side = formats.sidecar_path(path)
         kp = self.seqs[seq]
         if side.is_file():
@@ -716,7 +731,7 @@ def reconstruct_archive(
     )
     run = {"ok": 0, "failed": 0, "frames": 0}
     with (
-        open_sources(input, image_size=options.image_size) as sources,
+        open_sources(input, image_size=options.image_size, exclude=output) as sources,
         ResultWriter(output, settings) as writer,
         ThreadPoolExecutor(1, thread_name_prefix="jmocap-write") as io,
     ):
