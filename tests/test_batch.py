@@ -39,6 +39,8 @@ from jmocap.batch import (
     MOTION_FIELDS,
     RESULT_FORMAT,
     BatchOptions,
+    assumed_fields,
+    check_clip,
     check_finite,
     check_params,
     chunk_frames,
@@ -46,6 +48,7 @@ from jmocap.batch import (
     config_json,
     history_length,
     load_run_params,
+    open_sources,
     params_sha256,
     reconstruct_archive,
     scan_folder,
@@ -58,8 +61,8 @@ from jmocap.cycle import (
     reconstruct,
     target_pose,
 )
-from jmocap.data.clip import clip_to_arrays, save_clip
-from jmocap.data.formats import write_openpose_folder
+from jmocap.data.clip import FormatError, clip_to_arrays, save_clip
+from jmocap.data.formats import write_openpose_folder, write_videopose3d
 from jmocap.data.synthetic import SynthConfig, generate_clip
 from jmocap.model import load_model
 from jmocap.nets import NetConfig
@@ -232,6 +235,35 @@ def test_scan_folder_names_and_skips(input_folder, tmp_path):
     assert {s.name for s in scan_folder(inner, exclude=inner / "out")} == GOOD | BAD
 
 
+def test_videopose3d_files_expand_and_layouts_are_checked(tmp_path):
+    """A VideoPose3D file is one clip per (subject, action, camera); its h36m17 keypoints do
+    not fit BODY_25 parameters, which the clip's failure says."""
+    rng = np.random.default_rng(0)
+    seqs = {"S1": {"Walking": [rng.uniform(100, 900, (12, 17, 2)) for _ in range(2)]}}
+    write_videopose3d(tmp_path / "data_2d_h36m_test.npz", seqs)
+    sources = scan_folder(tmp_path)
+    assert [s.name for s in sources] == ["data_2d_h36m_test/S1_Walking_0", "data_2d_h36m_test/S1_Walking_1"]
+    clip = sources[1].load()
+    assert clip.layout == "h36m17" and clip.num_frames == 12 and clip.fps == 50.0  # Human3.6M camera
+    with pytest.raises(FormatError, match=r"S1_Walking_1\]: field 'layout'.*'h36m17'.*'body25'"):
+        check_clip(clip, SMALL, sources[1].where)
+
+
+def test_image_size_is_assumed_only_when_missing(tmp_path, clips):
+    folder = tmp_path / "cam_less"
+    write_openpose_folder(clips["openpose"], folder, write_camera=False)
+    with open_sources(folder) as sources:
+        with pytest.raises(FormatError, match="no image size"):
+            sources[0].load()
+    with open_sources(folder, image_size=(640, 480)) as sources:
+        clip = sources[0].load()
+    np.testing.assert_array_equal(clip.image_size, [640, 480])
+    assert "image_size" in assumed_fields(clip) and "intrinsics" in assumed_fields(clip)
+    write_openpose_folder(clips["openpose"], folder)  # now with its sidecar: that wins
+    with open_sources(folder, image_size=(640, 480)) as sources:
+        np.testing.assert_array_equal(sources[0].load().image_size, clips["openpose"].image_size)
+
+
 # ---------------------------------------------------------------------------------------
 # an archive run
 # ---------------------------------------------------------------------------------------
@@ -360,6 +392,22 @@ def test_non_finite_reconstruction_is_a_failure(first_run, params, clips, tmp_pa
     err = read_manifest(tmp_path / "out")["a"]["error"]
     assert "a.npz: frame 0: field 'q'" in err and "not finite" in err
     assert not (tmp_path / "out" / "a.npz").exists()
+
+
+def test_bvh_per_clip(first_run, params, clips, tmp_path):
+    export = pytest.importorskip("jmocap.export")
+    src = tmp_path / "in"
+    src.mkdir()
+    save_clip(src / "a.npz", clips["long"])
+    out = tmp_path / "out"
+    s = reconstruct_archive(src, out, params, SMALL, dataclasses.replace(OPTS, bvh=True))
+    assert s["ok"] == 1 and read_manifest(out)["a"]["bvh"] == "a.bvh"
+    bvh = export.read_bvh(out / "a.bvh")
+    assert bvh.frames.shape[0] == 20 and bvh.frame_time == pytest.approx(1 / clips["long"].fps)
+    (out / "a.bvh").unlink()  # a result without its BVH is not done when --bvh is asked for
+    s = reconstruct_archive(src, out, params, SMALL, dataclasses.replace(OPTS, bvh=True))
+    assert s["run"]["ok"] == 1 and (out / "a.bvh").is_file()
+    assert reconstruct_archive(src, out, params, SMALL, OPTS)["run"]["skipped"] == 1
 
 
 # ---------------------------------------------------------------------------------------
