@@ -229,6 +229,11 @@ def profile(batch: int, min_time: float = 1.0):
     t_tp = (time.perf_counter() - t0) / 30
     print(f"| TPNet (target pose), per frame | {1e3 * t_tp:.2f} | {1e6 * t_tp / batch:.1f} | "
           f"{t_tp / (6 * whole):.0%} of a frame's 6 iterations |")
+    ca_tp = tpn.cost_analysis()
+    ca_tp = ca_tp[0] if isinstance(ca_tp, (list, tuple)) else ca_tp
+    if ca_tp:
+        print(f"\nXLA cost analysis of TPNet: {ca_tp.get('flops', float('nan')) / (30 * batch) / 1e6:.1f} MFLOP "
+              "per clip-frame")
     if ca:
         fl = ca.get("flops", float("nan"))
         by = ca.get("bytes accessed", float("nan"))
