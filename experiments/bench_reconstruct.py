@@ -296,8 +296,10 @@ def main(argv=None):
             print(f"| {r['backend']} | {r['batch']} | {r['frames']} | failed: {r['error'][:80]} | | | | | | | |")
             continue
         ext = "" if r["frames"] == CLIP_FRAMES else " (extrapolated per frame)"
-        print(f"| {r['backend']} | {r['batch']} | {r['frames']}{ext} | {r['fps']:,.1f} | {r['fps'] / mjx_fps:,.0f}x | "
-              f"{r['cores']:.2f} | {r['fps_per_core']:,.1f} | {r['fps_per_core'] / mjx_fpc:,.0f}x | "
+        vs = f"{r['fps'] / mjx_fps:,.0f}x" if mjx else "-"
+        vs_c = f"{r['fps_per_core'] / mjx_fpc:,.0f}x" if mjx else "-"
+        print(f"| {r['backend']} | {r['batch']} | {r['frames']}{ext} | {r['fps']:,.1f} | {vs} | "
+              f"{r['cores']:.2f} | {r['fps_per_core']:,.1f} | {vs_c} | "
               f"{r['call_s']:.2f} | {r['compile_s']:.1f} | {r['rss_peak_mb']:,.0f} |")
     jm = [r for r in ok if r["backend"] == "jmocap"]
     if jm:
