@@ -64,8 +64,9 @@ class CycleConfig:
     max_velocity: float = 30.0  # |qd| bound (rad/s, m/s) before the projection; keeps states finite
     mu: float = 0.8  # friction coefficient (paper Sec. 3.4.2)
     # soft limit of the residual (virtual) root force, in body weights (the torque limit is the
-    # same times 1 m); None applies any residual, as eqs. 7 + 13 literally (docs/method.md)
-    root_residual_limit: float | None = 0.5
+    # same times 1 m); None applies any residual, as eqs. 7 + 13 literally (the default: a limit
+    # makes the M-weighted PD inconsistent and the cycle diverges, see docs/method.md)
+    root_residual_limit: float | None = None
     # initial PD gains k_p_ini (1/s^2, acceleration units: see docs/method.md) and damping
     kp_root_pos: float = 1600.0
     kp_root_rot: float = 1600.0
@@ -448,11 +449,14 @@ def simulate(
     config: CycleConfig = CycleConfig(),
     *,
     init: CycleState | None = None,
+    truncate_gradient: bool = False,
 ) -> tuple[CycleState, FrameOutput]:
     """The dynamic cycle over frames (``lax.scan``), ``k`` iterations per frame.
 
     ``init`` defaults to the first target pose at rest. Padding frames (mask False) leave the
-    state unchanged.
+    state unchanged. ``truncate_gradient`` stops gradients at the state entering each frame
+    (truncated backpropagation through time: a frame's losses reach the networks through that
+    frame's ``k`` iterations only; training uses it, see docs/method.md).
     """
     dtype = q_hat.dtype
     k = config.iterations
@@ -462,6 +466,8 @@ def simulate(
 
     def frame(state, xs):
         target, prob, real = xs
+        if truncate_gradient:
+            state = jax.lax.stop_gradient(state)
 
         def iteration(s, _):
             return cycle_step(params, model, s, target, prob, dt, config)

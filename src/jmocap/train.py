@@ -4,10 +4,8 @@ Stages (each a :class:`StageConfig`; their order and lengths come from a :class:
 
 * ``tpnet`` — pre-training of C_P with L_3D + L_2D + L_ori + L_irr + L_b (eq. 17) and of C_T
   with L_CT (eq. 24); C_T's gradient does not reach C_P (they are separate pre-trainings).
-* ``grfnet`` — GRFNet with L_GRF (eq. 12) through the dynamic cycle, the others frozen. It runs
-  before DyNet here (the paper trains DyNet first): with the residual root force limited
-  (``CycleConfig.root_residual_limit``) the body needs the contact forces to be supported.
 * ``dynet`` — DyNet with L_Dyn (eq. 25) through the dynamic cycle, TPNet frozen.
+* ``grfnet`` — GRFNet with L_GRF (eq. 12) through the dynamic cycle, the others frozen.
 * ``joint`` — everything together: the sum of all objectives plus L_3D of the final pose.
 * ``finetune2d`` — Sec. 3.6: the 2D reprojection loss only, against the detector keypoints.
 
@@ -78,8 +76,8 @@ class TrainConfig:
     seed: int = 0
     stages: tuple[StageConfig, ...] = (
         StageConfig("tpnet", 3000, 1e-3, 16, 12),
-        StageConfig("grfnet", 300, 3e-4, 8, 6),
         StageConfig("dynet", 300, 3e-4, 8, 6),
+        StageConfig("grfnet", 300, 3e-4, 8, 6),
         StageConfig("joint", 200, 1e-4, 8, 6),
     )
     cycle: CycleConfig = field(default_factory=CycleConfig)
@@ -88,6 +86,8 @@ class TrainConfig:
     log_every: int = 20
     checkpoint_every: int = 200
     clip_grad_norm: float = 1.0
+    # truncated backpropagation through time: gradients stop at the state entering each frame
+    truncate_gradient: bool = True
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -225,13 +225,13 @@ def tpnet_losses(params, model, d, key, config: CycleConfig, detach: bool):
     }
 
 
-def cycle_losses(params, model, d, tp, config: CycleConfig):
+def cycle_losses(params, model, d, tp, config: CycleConfig, truncate: bool = False):
     mask = d["mask"]
     q_hat = tp.q_hat
     prob = jax.nn.sigmoid(tp.contact_logits)
     dtype = q_hat.dtype
     init = CycleState(d["gt_q"][0], d["gt_qd"][0], jnp.zeros((4, 3), dtype))
-    _, out = simulate(params, model, q_hat, prob, mask, d["fps"], config, init=init)
+    _, out = simulate(params, model, q_hat, prob, mask, d["fps"], config, init=init, truncate_gradient=truncate)
     e = jax.vmap(lambda a, b: pd_error(model, a, b))(q_hat, out.q)
     steps = out.steps  # (T, k, ...)
     k = config.iterations
@@ -261,7 +261,7 @@ STAGE_WEIGHTS = {
 }
 
 
-def stage_loss(params, model, d, key, stage: str, config: CycleConfig):
+def stage_loss(params, model, d, key, stage: str, config: CycleConfig, truncate: bool = False):
     """Weighted loss of one sample for a stage, and its named terms."""
     if stage == "finetune2d":  # 2D only: the detector keypoints are the pseudo ground truth
         d = dict(d, gt_2d=d["keypoints"][..., :2])
@@ -269,17 +269,17 @@ def stage_loss(params, model, d, key, stage: str, config: CycleConfig):
     if stage in ("dynet", "grfnet", "joint"):
         if stage != "joint":
             tp = jax.lax.stop_gradient(tp)
-        terms.update(cycle_losses(params, model, d, tp, config))
+        terms.update(cycle_losses(params, model, d, tp, config, truncate))
     w = STAGE_WEIGHTS[stage]
     total = sum(w[k] * terms[k] for k in w)
     return total, terms
 
 
-def make_step(stage: StageConfig, config: CycleConfig, optimizer):
+def make_step(stage: StageConfig, config: CycleConfig, optimizer, truncate: bool = True):
     def batch_loss(params, model, data, key):
         keys = jax.random.split(key, data["mask"].shape[0])
         total, terms = jax.vmap(
-            lambda m, d, k: stage_loss(params, m, d, k, stage.name, config)
+            lambda m, d, k: stage_loss(params, m, d, k, stage.name, config, truncate)
         )(model, data, keys)
         return jnp.mean(total), jax.tree.map(jnp.mean, terms)
 
@@ -363,7 +363,7 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
         if si == state["stage"] and state["opt_state"] is not None:
             opt_state = serialization.from_state_dict(opt_state, state["opt_state"])
             start = state["step"]
-        step_fn = make_step(stage, config.cycle, optimizer)
+        step_fn = make_step(stage, config.cycle, optimizer, config.truncate_gradient)
         bar = tqdm(total=stage.steps, initial=start, desc=stage.name, disable=not progress) if tqdm else None
         t0 = time.time()
         for it in range(start, stage.steps):
