@@ -78,3 +78,10 @@ def test_no_lapack_custom_call_in_the_compiled_program():
 def test_det3(enable_x64):
     A = np.random.default_rng(4).normal(size=(6, 3, 3))
     np.testing.assert_allclose(la.det3(A), np.linalg.det(A), atol=1e-12)
+
+
+def test_mass_inverse_matches_numpy(enable_x64):
+    from jmocap.physics.dynamics import mass_inverse
+
+    M = spd(np.random.default_rng(5), (3,), 47)
+    np.testing.assert_allclose(mass_inverse(la.cholesky(M)), np.linalg.inv(M), atol=1e-12)

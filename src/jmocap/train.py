@@ -243,7 +243,10 @@ def cycle_losses(params, model, d, tp, config: CycleConfig, truncate: bool = Fal
     layout = get_layout(config.layout)
     kp = jax.vmap(lambda q: P.keypoints(model, q, layout))(out.q)
     return {
-        "dyn": Lo.loss_dyn(e, steps.tau_pd.mean(1), mask),
+        # the torque term per body weight, like the force losses: on raw newtons phi |tau|^2
+        # (gravity compensation alone is ~700 N) outweighed the tracking term and DyNet learned
+        # to lower its gains (docs/method.md)
+        "dyn": Lo.loss_dyn(e, steps.tau_pd.mean(1) / weight, mask),
         "force": Lo.loss_force(flat.tau[:, :6], weight, step_mask),
         "smooth": Lo.loss_smooth(flat.grf, grf_prev, weight, step_mask),
         "cone": Lo.loss_cone(flat.grf_raw / weight, normal, config.mu, step_mask),

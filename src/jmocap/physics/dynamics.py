@@ -176,7 +176,8 @@ def cho_solve(L: Array, b: Array) -> Array:
 
 def mass_inverse(L: Array) -> Array:
     """M^-1 from its Cholesky factor (for the contact projection's metric)."""
-    return cho_solve(L, jnp.eye(L.shape[-1], dtype=L.dtype))
+    Linv = linalg.solve_lower(L, jnp.broadcast_to(jnp.eye(L.shape[-1], dtype=L.dtype), L.shape))
+    return jnp.swapaxes(Linv, -1, -2) @ Linv  # M^-1 = L^-T L^-1: one substitution pass, not two
 
 
 def _generalised_contact(Jc: Array, contact_force: Array | None, dtype) -> Array | float:
