@@ -88,6 +88,8 @@ class TrainConfig:
     clip_grad_norm: float = 1.0
     # truncated backpropagation through time: gradients stop at the state entering each frame
     truncate_gradient: bool = True
+    # CycleConfig fields changed in the config shipped with the weights (inference only)
+    ship_cycle: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -243,10 +245,7 @@ def cycle_losses(params, model, d, tp, config: CycleConfig, truncate: bool = Fal
     layout = get_layout(config.layout)
     kp = jax.vmap(lambda q: P.keypoints(model, q, layout))(out.q)
     return {
-        # the torque term per body weight, like the force losses: on raw newtons phi |tau|^2
-        # (gravity compensation alone is ~700 N) outweighed the tracking term and DyNet learned
-        # to lower its gains (docs/method.md)
-        "dyn": Lo.loss_dyn(e, steps.tau_pd.mean(1) / weight, mask),
+        "dyn": Lo.loss_dyn(e, steps.tau_pd.mean(1), mask),  # raw torques, phi = 1e-6 (eq. 25)
         "force": Lo.loss_force(flat.tau[:, :6], weight, step_mask),
         "smooth": Lo.loss_smooth(flat.grf, grf_prev, weight, step_mask),
         "cone": Lo.loss_cone(flat.grf_raw / weight, normal, config.mu, step_mask),
