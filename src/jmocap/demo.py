@@ -8,9 +8,10 @@ tracking simulation). The demo
 
 1. reconstructs the input folder with the shipped default weights (:mod:`jmocap.batch`: result
    ``.npz`` + BVH per clip, manifest, summary),
-2. scores every clip against its ground truth (:mod:`jmocap.metrics`), for the physionical
-   result and for TPNet's kinematic target in the same result file (``target_q``, the
-   kinematic-only baseline), and writes ``metrics.md`` / ``metrics.json``,
+2. scores every clip against its ground truth (:mod:`jmocap.metrics`), for the dynamic-cycle
+   result (the shipped config: fixed PD gains) and for TPNet's kinematic target in the same
+   result file (``target_q``, the kinematic-only baseline), and writes ``metrics.md`` /
+   ``metrics.json``,
 3. renders the walking clip (MP4, front and side views with GRF arrows and contacts, plus the
    input view with the 2D keypoints) and plots its vertical GRF against the ground truth.
 
@@ -75,7 +76,7 @@ def run_demo(
         results[clip.name] = (clip, r)
         model = load_model(height_m=float(r["height_m"]), with_mjx=False)
         rows[clip.name] = {
-            "physionical": evaluate_motion(
+            "dynamic cycle": evaluate_motion(
                 clip, q=r["q"], grf=r["grf"], tau=r["tau"], contact_prob=r["contact_prob"], model=model
             ),
             "kinematic": evaluate_motion(clip, q=r["target_q"], contact_prob=r["contact_prob"], model=model),
