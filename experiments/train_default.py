@@ -38,8 +38,8 @@ def main(argv=None):
             print("+", " ".join(cmd), flush=True)
             subprocess.run(cmd, cwd=ROOT, check=True)
 
-    from jmocap.weights import ship_params
     from jmocap.train import TrainConfig, train
+    from jmocap.weights import ship_params
 
     config = TrainConfig.from_json(json.loads(Path(args.config).read_text()))
     params = train(config)

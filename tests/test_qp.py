@@ -25,7 +25,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.test_util import check_grads
-from qp_reference import clarabel_projection, random_instance
 
 from jmocap.physics import qp
 from jmocap.physics.qp import (
@@ -36,6 +35,7 @@ from jmocap.physics.qp import (
     solve_projection_info,
     tangent_basis,
 )
+from qp_reference import clarabel_projection, random_instance
 
 
 @contextlib.contextmanager
@@ -365,7 +365,7 @@ def test_friction_cone_loss_gradients(x64):
         f = rng.normal(size=3) * np.array([1, 1, 0.2])  # mostly outside the cone
         check_grads(lambda f_: friction_cone_loss(f_, up), (f,), order=1, modes=("fwd", "rev"),
                     eps=1e-6, atol=1e-6, rtol=1e-6)
-        check_grads(lambda n_: friction_cone_loss(f, n_), (up,), order=1, modes=("fwd", "rev"),
+        check_grads(lambda n_: friction_cone_loss(f, n_), (up,), order=1, modes=("fwd", "rev"),  # noqa: B023 (called within the iteration)
                     eps=1e-6, atol=1e-6, rtol=1e-6)
     for f in ([0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 0.0, 1.0]):
         g = jax.grad(friction_cone_loss, argnums=(0, 1))(np.array(f), up)
@@ -434,7 +434,7 @@ def test_friction_pyramid_gradients(x64):
         f = rng.normal(size=3)
         check_grads(lambda f_: project_friction_pyramid(f_, n), (f,), order=1,
                     modes=("fwd", "rev"), eps=1e-6, atol=1e-6, rtol=1e-6)
-        check_grads(lambda n_: project_friction_pyramid(f, n_), (n,), order=1,
+        check_grads(lambda n_: project_friction_pyramid(f, n_), (n,), order=1,  # noqa: B023 (called within the iteration)
                     modes=("fwd", "rev"), eps=1e-6, atol=1e-6, rtol=1e-6)
     for f in (np.zeros(3), np.array([0.0, 0, -1.0]), np.array([0.0, 0, 1.0])):
         assert _all_finite(jax.jacrev(project_friction_pyramid, argnums=(0, 1))(f, n))

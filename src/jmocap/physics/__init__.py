@@ -31,7 +31,6 @@ from jmocap.physics.kinematics import (
     site_jacobian,
     site_positions,
 )
-
 from jmocap.physics.qp import solve_projection
 
 __all__ = [

@@ -316,7 +316,7 @@ def _gi_steps(A, bmag, st, steps: int):
 # ----------------------------------------------------------------------------- batch selection
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _selector(method: str, fast: int, extra: int, fallback: bool):
     """Active-set selector over a batch (N, m, m), (N, m) -> (N, m) bool.
 
