@@ -52,3 +52,15 @@ def random_configurations(mj: mujoco.MjModel, n: int, seed: int = 0):
         qs.append(q)
         qds.append(rng.normal(scale=2.0, size=mj.nv))
     return np.stack(qs), np.stack(qds)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _no_persistent_compilation_cache():
+    """CLI commands run in-process switch on jax's persistent compilation cache (their
+    ``--cache-dir`` default); keep that from leaking into later test modules."""
+    yield
+    if jax.config.jax_compilation_cache_dir:
+        from jax.experimental.compilation_cache import compilation_cache
+
+        jax.config.update("jax_compilation_cache_dir", None)
+        compilation_cache.reset_cache()
