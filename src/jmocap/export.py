@@ -39,7 +39,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,6 +47,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from jmocap.data.archive import _atomic_write
 from jmocap.data.clip import FormatError
 from jmocap.model import Model
 
@@ -412,25 +412,9 @@ def write_bvh(
     fmt = " ".join([f"%.{decimals}f"] * 3 + ["%.6f"] * (motion.shape[1] - 3)) + "\n"
     text = [_hierarchy_text(joints, decimals), "MOTION\n", f"Frames: {len(q)}\n", f"Frame Time: {1.0 / fps:.8f}\n"]
     text += [fmt % tuple(row) for row in motion]
-    _atomic_write_text(path, "".join(text))
-    return path
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="ascii", newline="\n") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    _atomic_write(path, "".join(text).encode("ascii"))
+    return path
 
 
 # ======================================================================================
