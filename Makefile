@@ -16,8 +16,14 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(PY) -m jmocap.cli demo --out demo_out
 
+# One pytest process per test file: a long single process crashed (segfault inside XLA's CPU
+# compiler, in tests/test_qp.py after ~200 tests) where the same file passes on its own.
+# Exit status 5 (every test of a file deselected, e.g. all slow) is not a failure.
 test: $(STAMP)
-	$(PY) -m pytest -q
+	@status=0; for f in tests/test_*.py; do \
+	  $(PY) -m pytest -q $$f; rc=$$?; \
+	  if [ $$rc -ne 0 ] && [ $$rc -ne 5 ]; then status=1; echo "FAILED: $$f (exit $$rc)"; fi; \
+	done; exit $$status
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
