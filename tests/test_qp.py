@@ -155,6 +155,29 @@ def test_resolving_from_the_solution_returns_it(x64):
         np.testing.assert_allclose(again.x, info.x, rtol=0, atol=1e-12 * (1 + np.abs(info.x).max()))
 
 
+def test_cholesky_metric_matches_inverse_metric(x64):
+    """chol=L (W = L L^T, only L^-1 G^T formed) gives the same x, and the same derivatives."""
+    rng = np.random.default_rng(9)
+    for m in (4, 8, 16):
+        insts = [random_instance(rng, 47, m, feasible_at_v=False) for _ in range(8)]
+        W, Winv, G, v, lower = _stack(insts)
+        L = np.linalg.cholesky(W)
+        x_inv = np.asarray(jax.vmap(solve_projection)(Winv, G, v, lower))
+        x_chol = np.asarray(jax.vmap(lambda L_, G_, v_, lo: solve_projection(None, G_, v_, lo, chol=L_))(L, G, v, lower))
+        np.testing.assert_allclose(x_chol, x_inv, rtol=0, atol=1e-9 * (1 + np.abs(x_inv).max()))
+    W, Winv, G, v, lower = random_instance(rng, 20, 4, degenerate=False, feasible_at_v=False)
+    L = np.linalg.cholesky(W)
+    info = solve_projection_info(Winv, G, v, lower)
+    assert info.active.any()
+
+    def by_chol(L_, G_, v_):
+        return solve_projection(None, G_, v_, lower, chol=jnp.tril(L_))
+
+    check_grads(by_chol, (L, G, v), order=1, modes=("fwd", "rev"), atol=1e-5, rtol=1e-5, eps=1e-6)
+    with pytest.raises(ValueError, match="exactly one"):
+        solve_projection(Winv, G, v, lower, chol=L)
+
+
 def test_disabled_rows_are_the_same_as_deleted_rows(x64):
     rng = np.random.default_rng(5)
     W, Winv, G, v, lower = random_instance(rng, 47, 8, degenerate=False, feasible_at_v=False)

@@ -378,11 +378,10 @@ def cycle_step(
     qd_free = qd + dt * qdd  # eq. 14
     qd_free = jnp.clip(qd_free, -config.max_velocity, config.max_velocity)
     if config.hard_constraint:
-        Minv = P.mass_inverse(L) if config.metric == "mass" else None
         qd_new = P.project_velocity(
             model, q, qd_free, in_contact, dt=dt, metric=config.metric, beta=config.beta,
-            Minv=Minv, kin=kin,
-        )  # eqs. 15-16
+            chol=L if config.metric == "mass" else None, kin=kin,
+        )  # eqs. 15-16, reusing the factor of M
     else:
         qd_new = qd_free
     q_new = P.integrate_positions(model, q, qd_new, dt)  # eqs. 1, 14

@@ -18,9 +18,9 @@ into the floor::
   with respect to the weight is therefore zero; contact probabilities are trained by their own
   loss (the paper's L_b).
 
-The QP is solved exactly by :func:`jmocap.physics.qp.solve_projection` given ``W^-1``; pass
-``Minv`` when the mass matrix was already factorised (the dynamic cycle does), so the projection
-never refactorises it.
+The QP is solved exactly by :func:`jmocap.physics.qp.solve_projection` given the Cholesky factor
+of W (or ``W^-1``); pass ``chol`` when the mass matrix was already factorised (the dynamic cycle
+does), so the projection never refactorises it.
 
 Contact point sets: by default the four foot sites (left heel, left toe, right heel, right toe,
 ``jmocap.CONTACT_SITES``). :func:`foot_corner_points` builds PIP's variant (the four corners of a
@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jmocap.model import Model
-from jmocap.physics.dynamics import cho_solve, cholesky, mass_matrix
+from jmocap.physics.dynamics import cholesky, mass_matrix
 from jmocap.physics.kinematics import Kinematics, _c, forward_kinematics, point_jacobian
 from jmocap.physics.qp import (
     friction_cone_loss,
@@ -192,6 +192,7 @@ def project_velocity(
     normal=FLOOR_NORMAL,
     floor_height: float = 0.0,
     Minv: Array | None = None,
+    chol: Array | None = None,
     kin: Kinematics | None = None,
 ) -> Array:
     """The admissible velocity closest to ``qd`` (paper eq. 15; see the module docstring).
@@ -203,7 +204,10 @@ def project_velocity(
       metric: ``"mass"`` (W = M(q)) or ``"identity"`` (W = I, the paper's eq. 15).
       beta: penetration-recovery factor in [0, 1].
       points: contact points (default: the four foot sites).
-      Minv: M(q)^-1 if already known (metric ``"mass"`` only); computed otherwise.
+      Minv: M(q)^-1 if already known (metric ``"mass"`` only).
+      chol: the lower Cholesky factor of M(q) if already known (metric ``"mass"`` only; the
+        cheaper form: only L^-1 G^T is computed). Without ``Minv`` or ``chol``, M is built and
+        factorised here.
       kin: forward kinematics at q if already known.
     Returns:
       qd* (nv,); exactly ``qd`` when it already satisfies every active constraint.
@@ -217,14 +221,14 @@ def project_velocity(
         model, q, active, dt=dt, beta=beta, points=points, normal=normal,
         floor_height=floor_height, kin=kin,
     )
+    if Minv is not None and chol is not None:
+        raise ValueError("give at most one of Minv and chol")
     if metric == "identity":
-        Winv = jnp.eye(model.nv, dtype=dtype)
-    elif Minv is not None:
-        Winv = jnp.asarray(Minv, dtype)
-    else:
-        L = cholesky(mass_matrix(model, q, kin=kin))
-        Winv = cho_solve(L, jnp.eye(model.nv, dtype=dtype))
-    return solve_projection(Winv, G, qd, lower)
+        return solve_projection(jnp.eye(model.nv, dtype=dtype), G, qd, lower)
+    if Minv is not None:
+        return solve_projection(jnp.asarray(Minv, dtype), G, qd, lower)
+    L = cholesky(mass_matrix(model, q, kin=kin)) if chol is None else jnp.asarray(chol, dtype)
+    return solve_projection(None, G, qd, lower, chol=L)
 
 
 def _active_mask(active, n: int) -> Array:
