@@ -20,8 +20,13 @@ frames/s = clips x frames / seconds. Per-frame cost does not depend on the clip 
 the table says so (frames/s is then a per-frame extrapolation to 300-frame clips).
 
 ``--profile`` also times the pieces of one cycle iteration separately at the largest batch
-(smooth dynamics, DyNet, GRFNet + friction pyramid, Cholesky + M^-1, projection, integration)
+(smooth dynamics, DyNet, GRFNet + friction pyramid, Cholesky + forward dynamics, projection,
+integration)
 and prints XLA's cost analysis of one iteration.
+
+Every jmocap configuration at batch 64 and 512 is also run with the batch sharded over one host
+CPU device per core (``--xla_force_host_platform_device_count``, a ``NamedSharding`` over the
+clip axis, as ``jmocap.batch`` does): XLA's CPU backend runs one device's program on one thread.
 
 Usage:  python experiments/bench_reconstruct.py [--quick [--mjx]] [--profile] [--large-frames N]
         python experiments/bench_reconstruct.py --one BATCH FRAMES BACKEND   (one configuration)
@@ -87,11 +92,17 @@ def make_inputs(batch: int, frames: int):
     return jax.tree.map(lambda *xs: np.stack(xs), *[one[i] for i in idx])
 
 
-def run_one(batch: int, frames: int, backend: str, min_time: float) -> dict:
-    """Measure one configuration in this process; returns a JSON-able dict."""
+def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int = 1) -> dict:
+    """Measure one configuration in this process; returns a JSON-able dict.
+
+    ``devices`` > 1 shards the batch of clips over that many host CPU devices (the process must
+    have been started with ``--xla_force_host_platform_device_count``; :func:`in_subprocess`
+    does this), exactly as ``jmocap.batch`` shards its groups of clips.
+    """
     import dataclasses
 
     import jax
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
     from jmocap.cycle import CycleConfig, reconstruct
     from jmocap.model import load_model
@@ -100,6 +111,12 @@ def run_one(batch: int, frames: int, backend: str, min_time: float) -> dict:
     params, cfg, source = load_params(model, CycleConfig())
     cfg = dataclasses.replace(cfg, physics_backend=backend)
     inputs = make_inputs(batch, frames)
+    if devices > 1:
+        if len(jax.devices()) < devices or batch % devices:
+            raise SystemExit(f"need {devices} devices (have {len(jax.devices())}) and a batch divisible by them")
+        mesh = Mesh(jax.devices()[:devices], ("clips",))
+        inputs = jax.device_put(inputs, NamedSharding(mesh, PartitionSpec("clips")))
+        params = jax.device_put(params, NamedSharding(mesh, PartitionSpec()))
     rss_setup = rss_mb()
     fn = jax.jit(jax.vmap(reconstruct, in_axes=(None, None, 0, None)), static_argnums=3)
     t0 = time.perf_counter()
@@ -121,23 +138,27 @@ def run_one(batch: int, frames: int, backend: str, min_time: float) -> dict:
     return dict(batch=batch, frames=frames, backend=backend, params=source, compile_s=compile_s,
                 call_s=t, calls=len(times), fps=batch * frames / t, cores=cores,
                 fps_per_core=batch * frames / t / max(cores, 1e-9), rss_setup_mb=rss_setup,
-                rss_peak_mb=rss_mb(), finite=finite)
+                rss_peak_mb=rss_mb(), finite=finite, devices=devices)
 
 
-def in_subprocess(batch, frames, backend, min_time, timeout) -> dict:
+def in_subprocess(batch, frames, backend, min_time, timeout, devices: int = 1) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--one", str(batch), str(frames), backend,
-           "--min-time", str(min_time)]
+           "--min-time", str(min_time), "--devices", str(devices)]
+    env = dict(os.environ)
+    if devices > 1:
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={devices}").strip()
     t0 = time.perf_counter()
     try:
-        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
     except subprocess.TimeoutExpired:
-        return dict(batch=batch, frames=frames, backend=backend, error=f"timed out after {timeout} s")
+        return dict(batch=batch, frames=frames, backend=backend, devices=devices,
+                    error=f"timed out after {timeout} s")
     for line in reversed(p.stdout.splitlines()):
         if line.startswith("{"):
             r = json.loads(line)
             r["wall_s"] = time.perf_counter() - t0
             return r
-    return dict(batch=batch, frames=frames, backend=backend, error=(p.stderr or p.stdout)[-400:])
+    return dict(batch=batch, frames=frames, backend=backend, devices=devices, error=(p.stderr or p.stdout)[-400:])
 
 
 def profile(batch: int, min_time: float = 1.0):
@@ -175,8 +196,7 @@ def profile(batch: int, min_time: float = 1.0):
     dyn = jax.vmap(lambda q, qd: P.smooth_dynamics(model, q, qd))(q, qd)
     M, h, Jc = dyn.M, dyn.h, dyn.Jc
     e = jax.vmap(lambda a, b: pd_error(model, a, b))(q_hat, q)
-    L = jnp.linalg.cholesky(M)
-    Minv = jax.vmap(P.mass_inverse)(L)
+    L = jax.vmap(P.cholesky)(M)
     contact = prob > cfg.contact_threshold
 
     def dynet(q_hat, q, qd, M, e):
@@ -192,12 +212,11 @@ def profile(batch: int, min_time: float = 1.0):
         "smooth_dynamics (M, h, J_c)": (lambda q, qd: P.smooth_dynamics(model, q, qd), (q, qd)),
         "DyNet (features + MLP)": (dynet, (q_hat, q, qd, M, e)),
         "GRFNet + friction pyramid": (grfnet, (h[:, :6], Jc, prob, grf)),
-        "Cholesky + cho_solve + M^-1": (
-            lambda M, b: (lambda L: (P.cho_solve(L, b), P.mass_inverse(L)))(P.cholesky(M)), (M, h)),
-        "project_velocity (given M^-1, kin)": (
-            lambda q, qd, a, Minv, kin: P.project_velocity(model, q, qd, a, dt=1 / 180, beta=cfg.beta,
-                                                           Minv=Minv, kin=kin),
-            (q, qd, contact, Minv, dyn.kin)),
+        "Cholesky + cho_solve (forward dynamics)": (lambda M, b: P.cho_solve(P.cholesky(M), b), (M, h)),
+        "project_velocity (given L, kin)": (
+            lambda q, qd, a, L, kin: P.project_velocity(model, q, qd, a, dt=1 / 180, beta=cfg.beta,
+                                                        chol=L, kin=kin),
+            (q, qd, contact, L, dyn.kin)),
         "integrate_positions": (lambda q, qd: P.integrate_positions(model, q, qd, 1 / 180), (q, qd)),
         "whole cycle_step": (
             lambda q, qd, g, qh, p: cycle_step(params, model, CycleState(q, qd, g), qh, p, dt, cfg),
@@ -255,10 +274,11 @@ def main(argv=None):
     ap.add_argument("--mjx", action="store_true", help="with --quick: also run the MJX backend")
     ap.add_argument("--large-frames", type=int, default=30,
                     help="frames per clip at batch 512 (extrapolated per frame; 300 takes too long)")
+    ap.add_argument("--devices", type=int, default=1, help=argparse.SUPPRESS)  # with --one
     args = ap.parse_args(argv)
     if args.one:
         b, f, backend = args.one
-        print(json.dumps(run_one(int(b), int(f), backend, args.min_time)), flush=True)
+        print(json.dumps(run_one(int(b), int(f), backend, args.min_time, args.devices)), flush=True)
         return
 
     sys.path.insert(0, str(HERE))
@@ -270,42 +290,49 @@ def main(argv=None):
             profile(b)
         return
 
+    cores = os.cpu_count() or 1
     if args.quick:  # smoke run; MJX's cycle alone compiles for about 2 minutes on 2 cores
-        configs = [(1, 30, "jmocap"), (8, 30, "jmocap")] + ([(1, 2, "mjx")] if args.mjx else [])
+        configs = [(1, 30, "jmocap", 1), (8, 30, "jmocap", 1), (8, 30, "jmocap", 2)] + (
+            [(1, 2, "mjx", 1)] if args.mjx else [])
     else:
-        configs = [(1, CLIP_FRAMES, "jmocap"), (64, CLIP_FRAMES, "jmocap"), (512, args.large_frames, "jmocap"),
-                   (1, args.mjx_frames, "mjx")]
+        configs = [(1, CLIP_FRAMES, "jmocap", 1), (64, CLIP_FRAMES, "jmocap", 1),
+                   (512, args.large_frames, "jmocap", 1)]
+        if cores > 1:  # the batch sharded over one host device per core (as jmocap.batch does)
+            configs += [(64, CLIP_FRAMES, "jmocap", cores), (512, args.large_frames, "jmocap", cores)]
+        configs += [(1, args.mjx_frames, "mjx", 1)]
     print(f"machine: {machine()}  (OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']})", flush=True)
     rows = []
-    for b, f, backend in configs:
-        r = in_subprocess(b, f, backend, 0.5 if args.quick else args.min_time, timeout=900)
+    for b, f, backend, ndev in configs:
+        r = in_subprocess(b, f, backend, 0.5 if args.quick else args.min_time, timeout=900, devices=ndev)
         rows.append(r)
         msg = r.get("error") or f"{r['fps']:,.1f} frames/s, compile {r['compile_s']:.0f} s, wall {r['wall_s']:.0f} s"
-        print(f"  batch {b} x {f} frames, {backend}: {msg}", flush=True)
+        print(f"  batch {b} x {f} frames, {backend}, {ndev} device(s): {msg}", flush=True)
     ok = [r for r in rows if "error" not in r]
     print(f"\n{time.strftime('%Y-%m-%d %H:%M')}; reconstruct = TPNet + 6 cycle iterations per frame; "
           f"params: {ok[0]['params'] if ok else '?'}\n")
     mjx = [r for r in ok if r["backend"] == "mjx"]
     mjx_fps = max((r["fps"] for r in mjx), default=float("nan"))
     mjx_fpc = max((r["fps_per_core"] for r in mjx), default=float("nan"))
-    print("| backend | clips | frames per clip (measured) | frames/s | vs MJX backend (best) | CPU cores obtained | "
-          "frames per CPU-second | vs MJX per CPU-second | call (s) | compile (s) | peak RSS (MB) |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| backend | host devices | clips | frames per clip (measured) | frames/s | vs MJX backend (best) | "
+          "CPU cores obtained | frames per CPU-second | vs MJX per CPU-second | call (s) | compile (s) | peak RSS (MB) |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         if "error" in r:
-            print(f"| {r['backend']} | {r['batch']} | {r['frames']} | failed: {r['error'][:80]} | | | | | | | |")
+            print(f"| {r['backend']} | {r['devices']} | {r['batch']} | {r['frames']} | failed: {r['error'][:80]} "
+                  "| | | | | | | |")
             continue
         ext = "" if r["frames"] == CLIP_FRAMES else " (extrapolated per frame)"
         vs = f"{r['fps'] / mjx_fps:,.0f}x" if mjx else "-"
         vs_c = f"{r['fps_per_core'] / mjx_fpc:,.0f}x" if mjx else "-"
-        print(f"| {r['backend']} | {r['batch']} | {r['frames']}{ext} | {r['fps']:,.1f} | {vs} | "
+        print(f"| {r['backend']} | {r['devices']} | {r['batch']} | {r['frames']}{ext} | {r['fps']:,.1f} | {vs} | "
               f"{r['cores']:.2f} | {r['fps_per_core']:,.1f} | {vs_c} | "
               f"{r['call_s']:.2f} | {r['compile_s']:.1f} | {r['rss_peak_mb']:,.0f} |")
     jm = [r for r in ok if r["backend"] == "jmocap"]
     if jm:
-        big = max(jm, key=lambda r: r["batch"])
+        top = max(r["batch"] for r in jm)
+        big = max((r for r in jm if r["batch"] == top), key=lambda r: r["fps"])
         same = [r for r in jm if r["batch"] == 1]
-        print(f"\ntargets (batch {big['batch']}):")
+        print(f"\ntargets (batch {big['batch']}, {big['devices']} host device(s)):")
         print(f"  >= 1,000 frames/s: {big['fps']:,.0f}  {'met' if big['fps'] >= 1000 else 'NOT met'}"
               f" ({big['cores']:.2f} of 2 cores obtained; {big['fps_per_core']:,.0f} frames per CPU-second)")
         if mjx:
