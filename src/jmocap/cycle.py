@@ -355,7 +355,8 @@ def cycle_step(
     else:
         kp, alpha = kp0, jnp.zeros_like(kp0)
     # eq. 7 with the gains in acceleration units: tau = M (k_p e - k_d qd) + alpha + h
-    tau = M @ (kp * e - kd * qd) + alpha + h
+    acc_pd = kp * e - kd * qd
+    tau = M @ acc_pd + alpha + h
 
     in_contact = contact_prob > config.contact_threshold
     if config.use_grfnet:
@@ -374,7 +375,12 @@ def cycle_step(
         limit = config.root_residual_limit * body_mass(model, dtype) * 9.81
         tau_star = tau_star.at[:6].set(soft_limit_wrench(tau_star[:6], limit))
     L = P.cholesky(M)
-    qdd = P.cho_solve(L, tau_star + JtG - h)  # eq. 13
+    if config.root_residual_limit is None:
+        # eq. 13 with eq. 7 substituted: M qdd = tau* + J^T G lambda - h = M acc_pd + alpha
+        # (the contact force only redistributes tau between joints, residual and contacts)
+        qdd = acc_pd + P.cho_solve(L, alpha) if config.use_dynet else acc_pd
+    else:
+        qdd = P.cho_solve(L, tau_star + JtG - h)  # eq. 13
     qd_free = qd + dt * qdd  # eq. 14
     qd_free = jnp.clip(qd_free, -config.max_velocity, config.max_velocity)
     if config.hard_constraint:

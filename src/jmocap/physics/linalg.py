@@ -47,10 +47,28 @@ def _cholesky_1(M: Array) -> Array:
     return lax.fori_loop(0, n, column, jnp.zeros_like(M))
 
 
+#: Up to this many right-hand sides the substitutions build X transposed (see _solve_lower_1).
+FEW_RHS = 8
+
+
 def _solve_lower_1(L: Array, B: Array) -> Array:
-    """L X = B for lower-triangular L (n, n) and B (n, k), forward substitution."""
-    n = L.shape[-1]
+    """L X = B for lower-triangular L (n, n) and B (n, k), forward substitution.
+
+    For few right-hand sides (k <= FEW_RHS) the solution is built transposed, X^T (k, n), so
+    that each step is one (k, n) x (n,) product: with X (n, k) the batched (n,) x (n, k)
+    products ran 4x slower (k = 4, batch 512); for k ~ n (inverses, the Cholesky derivative)
+    the (n, k) layout is the faster one.
+    """
+    n, k = B.shape
     idx = jnp.arange(n)
+    if k <= FEW_RHS:
+        BT = B.T
+
+        def row_t(j, XT):
+            l = jnp.where(idx < j, L[j], 0.0)  # columns >= j of X^T are still zero
+            return XT.at[:, j].set((BT[:, j] - XT @ l) / L[j, j])
+
+        return lax.fori_loop(0, n, row_t, jnp.zeros_like(BT)).T
 
     def row(j, X):
         l = jnp.where(idx < j, L[j], 0.0)  # rows >= j of X are still zero
@@ -60,13 +78,23 @@ def _solve_lower_1(L: Array, B: Array) -> Array:
 
 
 def _solve_upper_1(L: Array, B: Array) -> Array:
-    """L^T X = B for lower-triangular L (n, n) and B (n, k), backward substitution."""
-    n = L.shape[-1]
+    """L^T X = B for lower-triangular L (n, n) and B (n, k), backward substitution (layout as
+    in :func:`_solve_lower_1`)."""
+    n, k = B.shape
     idx = jnp.arange(n)
+    if k <= FEW_RHS:
+        BT = B.T
+
+        def row_t(i, XT):
+            j = n - 1 - i
+            u = jnp.where(idx > j, L[:, j], 0.0)  # row j of L^T, right of the diagonal
+            return XT.at[:, j].set((BT[:, j] - XT @ u) / L[j, j])
+
+        return lax.fori_loop(0, n, row_t, jnp.zeros_like(BT)).T
 
     def row(i, X):
         j = n - 1 - i
-        u = jnp.where(idx > j, L[:, j], 0.0)  # row j of L^T, right of the diagonal
+        u = jnp.where(idx > j, L[:, j], 0.0)
         return X.at[j].set((B[j] - u @ X) / L[j, j])
 
     return lax.fori_loop(0, n, row, jnp.zeros_like(B))
