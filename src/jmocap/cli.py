@@ -382,6 +382,9 @@ def _reconstruct(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bucket", type=int, default=64, metavar="N",
                    help="a clip's last chunk is padded to a multiple of N frames (default 64)")
     p.add_argument("--batch", type=int, default=8, metavar="N", help="clips per device per call (default 8)")
+    p.add_argument("--host-devices", type=int, default=0, metavar="N",
+                   help="on a CPU-only machine, split each call over N host devices, one thread each "
+                        "(default 0: one per CPU core; 1: a single device)")
     p.add_argument("--image-size", type=_image_size_arg, metavar="WxH",
                    help="image size assumed for clips whose file and camera sidecar give none")
     p.add_argument("--bvh", action="store_true", help="also write <name>.bvh per clip")
@@ -392,7 +395,36 @@ def _reconstruct(p: argparse.ArgumentParser) -> None:
     p.set_defaults(func=cmd_reconstruct)
 
 
+def set_host_devices(n: int) -> bool:
+    """Ask for ``n`` host CPU devices (0: one per core) before JAX starts its backends.
+
+    XLA's CPU backend runs one device's program on one thread, so the batch engine, which shards
+    its clips over every local device, uses all cores only with several host devices. Returns
+    whether the setting took effect: not when a backend is already running (e.g. the command is
+    called from a process that has used JAX); an explicit ``n > 1`` then raises.
+    """
+    import os
+
+    import jax
+
+    want = n or (os.cpu_count() or 1)
+    if want <= 1:
+        return False
+    try:
+        jax.config.update("jax_num_cpu_devices", want)
+    except RuntimeError as e:  # backends already initialised in this process
+        if n > 1 and len(jax.devices("cpu")) != want:
+            raise ValueError(f"--host-devices {n}: JAX is already running in this process ({e})") from e
+        return False
+    return True
+
+
 def cmd_reconstruct(args) -> int:
+    try:
+        set_host_devices(args.host_devices)
+    except ValueError as e:
+        print(f"jmocap reconstruct: {e}", file=sys.stderr)
+        return 2
     from jmocap.batch import run_cli
 
     return run_cli(args)
