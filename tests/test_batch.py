@@ -434,7 +434,7 @@ def test_sigkill_loses_nothing_and_the_rerun_completes(xla_cache, first_run, par
     n = 24
     for i in range(n):
         save_clip(src / f"k{i:02d}.npz", synth(20 + i, 6 + i % 3))
-    cmd, env = cli(tmp_path, params, src, out, "--batch", "2", cache=xla_cache)
+    cmd, env = cli(tmp_path, params, src, out, "--batch", "2", "--host-devices", "1", cache=xla_cache)
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.time() + 300
     try:
@@ -468,12 +468,12 @@ def test_sigkill_loses_nothing_and_the_rerun_completes(xla_cache, first_run, par
 
 @pytest.mark.slow  # compiles the sharded program in a subprocess (30 s on 2 busy cores)
 def test_two_devices_shard_the_batch(xla_cache, first_run, params, input_folder, tmp_path):
-    """Two forced host devices, one clip each per call (kinematic mode, whose q is the target
-    pose that the one-device run also returns)."""
+    """Two host devices (``--host-devices 2``), one clip each per call (kinematic mode, whose q
+    is the target pose that the one-device run also returns)."""
     out1, _, _ = first_run
     out = tmp_path / "out"
     cmd, env = cli(tmp_path, params, input_folder, out, "--batch", "1", "--kinematic-only",
-                   cache=xla_cache, env={"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
+                   "--host-devices", "2", cache=xla_cache)
     run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 1, run.stderr  # the broken clips fail, as on one device
     summary = json.loads((out / "summary.json").read_text())

@@ -401,12 +401,15 @@ def set_host_devices(n: int) -> bool:
     XLA's CPU backend runs one device's program on one thread, so the batch engine, which shards
     its clips over every local device, uses all cores only with several host devices. Returns
     whether the setting took effect: not when a backend is already running (e.g. the command is
-    called from a process that has used JAX); an explicit ``n > 1`` then raises.
+    called from a process that has used JAX, or ``XLA_FLAGS`` already force a device count and
+    ``n`` is 0); an explicit ``n > 1`` that cannot be applied raises ``ValueError``.
     """
     import os
 
     import jax
 
+    if n == 0 and "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
+        return False  # the user's XLA_FLAGS already say how many
     want = n or (os.cpu_count() or 1)
     if want <= 1:
         return False

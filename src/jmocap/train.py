@@ -67,6 +67,9 @@ class StageConfig:
     lr: float
     batch: int
     frames: int  # window length in frames
+    # CycleConfig fields changed for this stage only (e.g. {"use_dynet": false}: train GRFNet
+    # under the fixed-gain PD that the shipped config runs)
+    cycle: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -350,7 +353,11 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
         state["key"] = np.asarray(restored["key"])
         state["opt_state"] = restored["opt_state"]
     log = open(out / "log.jsonl", "a")
+    # the window sampler's state is checkpointed, so a resumed run draws exactly the windows an
+    # uninterrupted one would have (checkpoints without it: reseeded from the stage and step)
     rng = np.random.default_rng(config.seed + 1000 * state["stage"] + state["step"])
+    if ckpt_path.exists() and restored.get("rng"):
+        rng.bit_generator.state = json.loads(restored["rng"])
     params = state["params"]
     key = jnp.asarray(state["key"])
     try:
@@ -365,7 +372,8 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
         if si == state["stage"] and state["opt_state"] is not None:
             opt_state = serialization.from_state_dict(opt_state, state["opt_state"])
             start = state["step"]
-        step_fn = make_step(stage, config.cycle, optimizer, config.truncate_gradient)
+        stage_cycle = dataclasses.replace(config.cycle, **stage.cycle)
+        step_fn = make_step(stage, stage_cycle, optimizer, config.truncate_gradient)
         bar = tqdm(total=stage.steps, initial=start, desc=stage.name, disable=not progress) if tqdm else None
         t0 = time.time()
         for it in range(start, stage.steps):
@@ -386,7 +394,7 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
             last = it + 1 == stage.steps
             if (it + 1) % config.checkpoint_every == 0 or last:
                 nxt = (si + 1, 0) if last else (si, it + 1)
-                _save_checkpoint(ckpt_path, nxt, params, None if last else opt_state, key)
+                _save_checkpoint(ckpt_path, nxt, params, None if last else opt_state, key, rng)
         if bar:
             bar.close()
         save_params(out / f"params_{stage.name}.msgpack", params)
@@ -395,8 +403,9 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
     return params
 
 
-def _save_checkpoint(path: Path, stage_step, params, opt_state, key) -> None:
+def _save_checkpoint(path: Path, stage_step, params, opt_state, key, rng=None) -> None:
     payload = {
+        "rng": "" if rng is None else json.dumps(rng.bit_generator.state),
         "stage": stage_step[0],
         "step": stage_step[1],
         "params": serialization.to_state_dict(jax.tree.map(np.asarray, params)),
