@@ -197,17 +197,16 @@ def test_hard_constraint_prevents_penetration(model):
 
 
 def test_ablation_switches_run(model):
+    """The switches no other test of this file compiles (use_grfnet / hard_constraint are in
+    test_hard_constraint_prevents_penetration, the root residual limit in the gradient test)."""
     params = perturbed_params(model, SMALL, scale=0.01)
     inp = synthetic_inputs(model, 6)
     rec = jax.jit(reconstruct, static_argnums=3)
     for change in (
         dict(kinematic_only=True),
         dict(use_dynet=False),
-        dict(use_grfnet=False),
-        dict(hard_constraint=False),
         dict(canonicalise=False),
         dict(metric="identity"),
-        dict(root_residual_limit=None),
     ):
         out = rec(params, model, inp, dataclasses.replace(SMALL, **change))
         assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(out)), change

@@ -30,6 +30,10 @@ def test_matches_lapack(enable_x64, n):
     np.testing.assert_allclose(la.solve_upper(L, B), np.linalg.solve(np.swapaxes(L, -1, -2), B), atol=1e-12)
     # one factor, a batch of right-hand sides (broadcasting)
     np.testing.assert_allclose(la.cho_solve(L[0], B), np.linalg.solve(M[0], B), atol=1e-12)
+    # many right-hand sides: the (n, k) layout of the substitutions (k > FEW_RHS)
+    C = rng.normal(size=(4, n, la.FEW_RHS + 3))
+    np.testing.assert_allclose(la.solve_lower(L, C), np.linalg.solve(L, C), atol=1e-12)
+    np.testing.assert_allclose(la.solve_upper(L, C), np.linalg.solve(np.swapaxes(L, -1, -2), C), atol=1e-12)
 
 
 def test_float32_and_jit_vmap():
@@ -53,18 +57,18 @@ def test_gradients_match_finite_differences(enable_x64):
     def solve(A, b):  # a symmetric positive definite parametrisation of M
         return la.cho_solve(la.cholesky(A @ A.T + 3.0 * jnp.eye(7)), b)
 
-    check_grads(solve, (A, b), order=2, modes=["fwd", "rev"])
-    check_grads(lambda A: la.cholesky(A @ A.T + 3.0 * jnp.eye(7)), (A,), order=1, modes=["fwd", "rev"])
+    check_grads(jax.jit(solve), (A, b), order=2, modes=["fwd", "rev"])
+    check_grads(jax.jit(lambda A: la.cholesky(A @ A.T + 3.0 * jnp.eye(7))), (A,), order=1, modes=["fwd", "rev"])
     L = np.linalg.cholesky(A @ A.T + 3.0 * np.eye(7))
-    check_grads(lambda L, B: la.solve_lower(jnp.tril(L), B), (L, B), order=1, modes=["fwd", "rev"])
-    check_grads(lambda L, B: la.solve_upper(jnp.tril(L), B), (L, B), order=1, modes=["fwd", "rev"])
+    check_grads(jax.jit(lambda L, B: la.solve_lower(jnp.tril(L), B)), (L, B), order=1, modes=["fwd", "rev"])
+    check_grads(jax.jit(lambda L, B: la.solve_upper(jnp.tril(L), B)), (L, B), order=1, modes=["fwd", "rev"])
 
 
 def test_solve_spd3(enable_x64):
     rng = np.random.default_rng(2)
     A, b = spd(rng, (5,), 3), rng.normal(size=(5, 3))
     np.testing.assert_allclose(la.solve_spd3(A, b), np.linalg.solve(A, b[..., None])[..., 0], atol=1e-12)
-    check_grads(la.solve_spd3, (A[0], b[0]), order=1, modes=["fwd", "rev"])
+    check_grads(jax.jit(la.solve_spd3), (A[0], b[0]), order=1, modes=["fwd", "rev"])
 
 
 def test_no_lapack_custom_call_in_the_compiled_program():
