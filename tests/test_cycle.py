@@ -160,6 +160,7 @@ def test_reconstruct_is_causal_and_ignores_padding(model):
     np.testing.assert_array_equal(out.q[T:], np.broadcast_to(out.q[T - 1], out.q[T:].shape))
 
 
+@pytest.mark.slow  # two float64 compiles of the whole pipeline (~50 s); jmocap.batch's tests vmap it too
 def test_vmap_over_clips_matches_single_clips(model):
     """In float64: in float32 batched and single kernels round differently and 48 cycle steps
     amplify the difference to ~1e-3."""

@@ -249,7 +249,8 @@ def test_vmap_matches_single_evaluation():
 
 
 @pytest.mark.parametrize(
-    "name, n_configs", [("tree", 1), ("humanoid", 1), pytest.param("humanoid", 3, marks=pytest.mark.slow)]
+    "name, n_configs", [pytest.param("tree", 1, marks=pytest.mark.slow), ("humanoid", 1),
+                        pytest.param("humanoid", 3, marks=pytest.mark.slow)]
 )
 def test_gradients_match_finite_differences(name, n_configs):
     with x64():

@@ -48,6 +48,20 @@ def _x64(enable: bool = True):
         jax.config.update("jax_enable_x64", old)
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _compilation_cache(tmp_path_factory):
+    """A persistent compilation cache for this module: its tests compile the same solver
+    programs under different Python functions, which only an HLO-keyed cache can share."""
+    from jax.experimental.compilation_cache import compilation_cache
+
+    old = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path_factory.mktemp("xla_cache")))
+    compilation_cache.reset_cache()
+    yield
+    jax.config.update("jax_compilation_cache_dir", old)
+    compilation_cache.reset_cache()
+
+
 @pytest.fixture
 def x64():
     with _x64():
@@ -158,7 +172,7 @@ def test_resolving_from_the_solution_returns_it(x64):
 def test_cholesky_metric_matches_inverse_metric(x64):
     """chol=L (W = L L^T, only L^-1 G^T formed) gives the same x, and the same derivatives."""
     rng = np.random.default_rng(9)
-    for m in (4, 16):  # enumeration and the dual active set
+    for m in (4,):  # the metric enters through _prepare only, the same for every method
         insts = [random_instance(rng, 47, m, feasible_at_v=False) for _ in range(8)]
         W, Winv, G, v, lower = _stack(insts)
         L = np.linalg.cholesky(W)
@@ -281,7 +295,8 @@ def _grad_instance(n_active: int, seed: int):
     raise AssertionError("no instance found")
 
 
-@pytest.mark.parametrize("n_active", [0, 1, 3])
+@pytest.mark.parametrize("n_active", [pytest.param(0, marks=pytest.mark.slow),
+                                      pytest.param(1, marks=pytest.mark.slow), 3])
 def test_gradients_match_finite_differences(x64, n_active):
     Winv, G, v, lower = _grad_instance(n_active, seed=10 * n_active)
     c = np.random.default_rng(0).normal(size=v.shape)
@@ -336,6 +351,7 @@ def test_gradients_never_nan(x64, case, method):
         G = np.stack([np.zeros(n), g[1], np.zeros(n), g[2]])
         lower = np.array([0.0, (g[1] @ v) + 0.3, 0.0, -5.0])
 
+    @jax.jit
     def f(*a):
         return solve_projection(*a, method=method)
 
@@ -384,11 +400,12 @@ def test_friction_cone_loss_values(x64):
 def test_friction_cone_loss_gradients(x64):
     up = np.array([0.1, -0.2, 1.0])
     rng = np.random.default_rng(0)
+    loss = jax.jit(friction_cone_loss)
     for _ in range(5):
         f = rng.normal(size=3) * np.array([1, 1, 0.2])  # mostly outside the cone
-        check_grads(jax.jit(lambda f_: friction_cone_loss(f_, up)), (f,), order=1, modes=("fwd", "rev"),
+        check_grads(lambda f_: loss(f_, up), (f,), order=1, modes=("fwd", "rev"),
                     eps=1e-6, atol=1e-6, rtol=1e-6)
-        check_grads(jax.jit(lambda n_: friction_cone_loss(f, n_)), (up,), order=1, modes=("fwd", "rev"),  # noqa: B023 (called within the iteration)
+        check_grads(lambda n_: loss(f, n_), (up,), order=1, modes=("fwd", "rev"),  # noqa: B023 (called within the iteration)
                     eps=1e-6, atol=1e-6, rtol=1e-6)
     for f in ([0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 0.0, 1.0]):
         g = jax.grad(friction_cone_loss, argnums=(0, 1))(np.array(f), up)
@@ -418,7 +435,8 @@ def test_friction_pyramid_projection_matches_clarabel(x64, facets):
     F = rng.normal(size=(60, 3)) * 2
     N = rng.normal(size=(60, 3)) * 0.2 + np.array([0.0, 0.0, 1.0])
     mu = 0.8
-    P = np.asarray(project_friction_pyramid(F, N, mu, facets))
+    project = jax.jit(project_friction_pyramid, static_argnames="facets")
+    P = np.asarray(project(F, N, mu, facets=facets))
     C = np.asarray(friction_pyramid_rows(N, mu, facets))
     for f, c, p in zip(F, C, P, strict=True):
         xr, _, _ = clarabel_projection(np.eye(3), c, f, np.zeros(facets))
@@ -432,7 +450,7 @@ def test_friction_pyramid_projection_matches_clarabel(x64, facets):
     # forces already inside are returned unchanged, bitwise
     inside = np.array([[0.1, -0.2, 1.0], [0.0, 0.0, 3.0], [0.0, 0.0, 0.0]])
     np.testing.assert_array_equal(
-        np.asarray(project_friction_pyramid(inside, np.array([0.0, 0, 1]), mu, facets)), inside)
+        np.asarray(project(inside, np.array([0.0, 0, 1]), mu, facets=facets)), inside)
 
 
 def test_friction_pyramid_four_facets_is_the_box(x64):
@@ -453,15 +471,18 @@ def test_friction_pyramid_four_facets_is_the_box(x64):
 def test_friction_pyramid_gradients(x64):
     rng = np.random.default_rng(2)
     n = np.array([0.1, 0.05, 1.0])
+    project = jax.jit(project_friction_pyramid)  # compiled once, for every point below
     for _ in range(4):
         f = rng.normal(size=3)
-        check_grads(jax.jit(lambda f_: project_friction_pyramid(f_, n)), (f,), order=1,
+        check_grads(lambda f_: project(f_, n), (f,), order=1,
                     modes=("fwd", "rev"), eps=1e-6, atol=1e-6, rtol=1e-6)
-        check_grads(jax.jit(lambda n_: project_friction_pyramid(f, n_)), (n,), order=1,  # noqa: B023 (called within the iteration)
+        check_grads(lambda n_: project(f, n_), (n,), order=1,  # noqa: B023 (called within the iteration)
                     modes=("fwd", "rev"), eps=1e-6, atol=1e-6, rtol=1e-6)
+    jr = jax.jit(jax.jacrev(project_friction_pyramid, argnums=(0, 1)))
+    jf = jax.jit(jax.jacfwd(project_friction_pyramid, argnums=(0, 1)))
     for f in (np.zeros(3), np.array([0.0, 0, -1.0]), np.array([0.0, 0, 1.0])):
-        assert _all_finite(jax.jacrev(project_friction_pyramid, argnums=(0, 1))(f, n))
-        assert _all_finite(jax.jacfwd(project_friction_pyramid, argnums=(0, 1))(f, n))
+        assert _all_finite(jr(f, n))
+        assert _all_finite(jf(f, n))
 
 
 def test_module_constants_are_consistent():
