@@ -54,6 +54,21 @@ def random_configurations(mj: mujoco.MjModel, n: int, seed: int = 0):
     return np.stack(qs), np.stack(qds)
 
 
+@pytest.fixture(scope="module")
+def xla_cache(tmp_path_factory):
+    """A persistent compilation cache for one test module (and the subprocesses it starts):
+    programs compiled again under other Python functions, or in another process, are reused."""
+    from jax.experimental.compilation_cache import compilation_cache
+
+    path = str(tmp_path_factory.mktemp("xla_cache"))
+    old = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", path)
+    compilation_cache.reset_cache()
+    yield path
+    jax.config.update("jax_compilation_cache_dir", old)
+    compilation_cache.reset_cache()
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _no_persistent_compilation_cache():
     """CLI commands run in-process switch on jax's persistent compilation cache (their

@@ -31,7 +31,6 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from jax.experimental.compilation_cache import compilation_cache
 
 from jmocap import physics as P
 from jmocap.batch import (
@@ -79,18 +78,6 @@ ROOT = Path(__file__).resolve().parents[1]
 # ---------------------------------------------------------------------------------------
 # fixtures
 # ---------------------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def xla_cache(tmp_path_factory):
-    """A persistent compilation cache for this module and its subprocesses."""
-    path = str(tmp_path_factory.mktemp("xla_cache"))
-    old = jax.config.jax_compilation_cache_dir
-    jax.config.update("jax_compilation_cache_dir", path)
-    compilation_cache.reset_cache()
-    yield path
-    jax.config.update("jax_compilation_cache_dir", old)
-    compilation_cache.reset_cache()
 
 
 @pytest.fixture(scope="module")

@@ -47,6 +47,19 @@ def near_floor_instances(model, n, seed):
     return qs, qds, np.array(actives), np.array(betas)
 
 
+def point_rows(mj, d, points):
+    """Normal (z) Jacobian rows and heights of body-fixed points, from MuJoCo C (after
+    mj_forward, or mj_kinematics + mj_comPos)."""
+    rows, heights = [], []
+    for b, off in zip(points.bodies, points.offsets, strict=True):
+        p = d.xpos[b] + d.xmat[b].reshape(3, 3) @ np.asarray(off)
+        jp = np.zeros((3, mj.nv))
+        mujoco.mj_jac(mj, d, jp, None, p, b)
+        rows.append(jp[2])
+        heights.append(p[2])
+    return np.array(rows), np.array(heights)
+
+
 def reference_projection(model, q, qd, active, beta, dt, metric="mass", points=None):
     """qd* from MuJoCo C quantities and Clarabel."""
     mj = model.mj
@@ -61,13 +74,7 @@ def reference_projection(model, q, qd, active, beta, dt, metric="mass", points=N
             rows.append(jp[2])
             heights.append(d.site_xpos[s, 2])
     else:
-        rows, heights = [], []
-        for b, off in zip(points.bodies, points.offsets, strict=True):
-            p = d.xpos[b] + d.xmat[b].reshape(3, 3) @ np.asarray(off)
-            jp = np.zeros((3, mj.nv))
-            mujoco.mj_jac(mj, d, jp, None, p, b)
-            rows.append(jp[2])
-            heights.append(p[2])
+        rows, heights = point_rows(mj, d, points)
     G = np.array(rows)
     lower = beta * np.maximum(0.0, -np.array(heights)) / dt
     G[~active] = 0.0
@@ -147,21 +154,14 @@ def _corner_problems(model, pts, n, seed, beta=0.2, dt=1.0 / 180.0):
     out = []
     for q, qd in zip(qs, qds, strict=True):
         d.qpos[:] = q
-        mujoco.mj_kinematics(mj, d)
-        world = [d.xpos[b] + d.xmat[b].reshape(3, 3) @ np.asarray(o) for b, o in zip(pts.bodies, pts.offsets, strict=True)]
-        q[2] += -min(p[2] for p in world) + rng.uniform(-0.03, 0.02)
+        mujoco.mj_forward(mj, d)
+        q[2] -= point_rows(mj, d, pts)[1].min() - rng.uniform(-0.03, 0.02)
         d.qpos[:] = q
         mujoco.mj_forward(mj, d)
         W = np.zeros((mj.nv, mj.nv))
         mujoco.mj_fullM(mj, d, W)
-        G, z = [], []
-        for b, o in zip(pts.bodies, pts.offsets, strict=True):
-            p = d.xpos[b] + d.xmat[b].reshape(3, 3) @ np.asarray(o)
-            jp = np.zeros((3, mj.nv))
-            mujoco.mj_jac(mj, d, jp, None, p, b)
-            G.append(jp[2])
-            z.append(p[2])
-        out.append((W, np.array(G), beta * np.maximum(0.0, -np.array(z)) / dt, qd))
+        G, z = point_rows(mj, d, pts)
+        out.append((W, G, beta * np.maximum(0.0, -z) / dt, qd))
     return out
 
 

@@ -49,17 +49,10 @@ def _x64(enable: bool = True):
 
 
 @pytest.fixture(autouse=True, scope="module")
-def _compilation_cache(tmp_path_factory):
-    """A persistent compilation cache for this module: its tests compile the same solver
-    programs under different Python functions, which only an HLO-keyed cache can share."""
-    from jax.experimental.compilation_cache import compilation_cache
-
-    old = jax.config.jax_compilation_cache_dir
-    jax.config.update("jax_compilation_cache_dir", str(tmp_path_factory.mktemp("xla_cache")))
-    compilation_cache.reset_cache()
+def _compilation_cache(xla_cache):
+    """This module's tests compile the same solver programs under different Python functions,
+    which only an HLO-keyed (persistent) cache can share."""
     yield
-    jax.config.update("jax_compilation_cache_dir", old)
-    compilation_cache.reset_cache()
 
 
 @pytest.fixture

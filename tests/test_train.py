@@ -4,7 +4,8 @@ uninterrupted run (checkpoints hold stage, step, parameters, optimiser state and
 
 Tiny networks, two short synthetic clips and a few steps per stage, so that the test measures
 the loop's bookkeeping, not learning. A persistent compilation cache shared by the module's
-runs makes the second and third runs reuse the first one's compiled steps.
+runs (conftest's ``xla_cache``) makes the second and third runs reuse the first one's compiled
+steps.
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ import json
 import jax
 import numpy as np
 import pytest
-from jax.experimental.compilation_cache import compilation_cache
 
 from jmocap.cycle import CycleConfig
 from jmocap.data.clip import save_clip
@@ -28,17 +28,6 @@ STAGES = (
     StageConfig("tpnet", 3, 1e-3, 2, 4),
     StageConfig("grfnet", 2, 1e-3, 2, 3, cycle={"use_dynet": False}),
 )
-
-
-@pytest.fixture(scope="module")
-def xla_cache(tmp_path_factory):
-    path = str(tmp_path_factory.mktemp("xla_cache"))
-    old = jax.config.jax_compilation_cache_dir
-    jax.config.update("jax_compilation_cache_dir", path)
-    compilation_cache.reset_cache()
-    yield path
-    jax.config.update("jax_compilation_cache_dir", old)
-    compilation_cache.reset_cache()
 
 
 @pytest.fixture(scope="module")
