@@ -1,21 +1,26 @@
-"""Tests of the synthetic data generator, the clip archive and ``jmocap data synth``.
+"""End-to-end tests of the synthetic clip generator (``jmocap.data.synthetic``), the clip
+archive and ``jmocap data synth``; the package's layout (public API, no import cycles).
+
+The character and its leg IK, the rotation helpers, cameras and 2D keypoints, and the physics
+variant have their own files (``tests/test_synthetic_*.py``).
 
 References are independent of the code under test: MuJoCo C (``mj_kinematics``, joint ranges
-read from ``MjModel.jnt_range``), a homogeneous ``K [R t]`` numpy pinhole, hand-made
-trajectories for the contact rule, ``numpy.polyfit`` for the flight parabola.
+read from ``MjModel.jnt_range``), hand-made trajectories for the contact rule,
+``numpy.polyfit`` for the flight parabola, the import statements of the package's sources.
 
 Tolerances: planted feet < 1 mm (the generator's leg IK converges to 1e-7 m; 1 mm is what the
-task asks); floor >= -1e-6 m (IK tolerance); projections 1e-3 px (float32 storage of 3D
-points ~1e-7 m at <= 8 m gives ~1e-4 px); flight curvature within 5 % of -g/2 (exact by
-construction, the 5 % is the task's bound); standing GRF within 10 % of the weight (soft
-contacts and the tracking controller's small root residual).
+task asks); floor >= -1e-6 m (IK tolerance); flight curvature within 5 % of -g/2 (exact by
+construction, the 5 % is the task's bound).
 """
 
 from __future__ import annotations
 
+import ast
 import json
+import re
 import tarfile
 import zipfile
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -25,6 +30,7 @@ from jmocap.cli import main
 from jmocap.data import synthetic as S
 from jmocap.data.archive import MANIFEST, Archive, ArchiveError, ArchiveWriter, iter_clips
 from jmocap.data.clip import load_clip
+from jmocap.data.synthetic.curves import _runs
 from jmocap.layouts import CONTACT_SITES, get_layout
 
 FAST = dict(frames=45, max_attempts=12)
@@ -163,29 +169,6 @@ def test_velocities_match_finite_differences(walk_clip):
         np.testing.assert_allclose(x, q[t + 1], atol=2e-4)
 
 
-def test_leg_fk_matches_mujoco():
-    ch = S.character(1.8)
-    rng = np.random.default_rng(0)
-    q = np.tile(ch.q_stand, (5, 1))
-    q[:, :3] = rng.normal(size=(5, 3))
-    quat = rng.normal(size=(5, 4))
-    q[:, 3:7] = quat / np.linalg.norm(quat, axis=1, keepdims=True)
-    d = mujoco.MjData(ch.mj)
-    jp, jr = np.zeros((3, ch.nv)), np.zeros((3, ch.nv))
-    for f, L in enumerate(ch.legs):
-        q[:, L.ik_qadr] = rng.uniform(ch.mj.jnt_range[ch.mj.dof_jntid[L.ik_dof]][:, 0],
-                                      ch.mj.jnt_range[ch.mj.dof_jntid[L.ik_dof]][:, 1])
-        R, p, J = ch.leg_fk(f, S._quat2mat(q[:, 3:7]), q[:, :3], q[:, L.ik_qadr])
-        for t in range(5):
-            d.qpos[:] = q[t]
-            mujoco.mj_kinematics(ch.mj, d)
-            mujoco.mj_comPos(ch.mj, d)
-            mujoco.mj_jacBody(ch.mj, d, jp, jr, L.ankle_body)
-            np.testing.assert_allclose(p[t], d.xpos[L.ankle_body], atol=1e-12)
-            np.testing.assert_allclose(R[t], d.xmat[L.ankle_body].reshape(3, 3), atol=1e-12)
-            np.testing.assert_allclose(J[t], np.vstack([jp[:, L.ik_dof], jr[:, L.ik_dof]]), atol=1e-12)
-
-
 # --- jumps --------------------------------------------------------------------------------
 
 
@@ -197,7 +180,7 @@ def test_jump_has_ballistic_flight(jump_clip):
             planted[a:b] = True
     flight = ~planted
     assert jump_clip.meta["flight_frames"] == int(flight.sum()) > 0
-    runs = S._runs(flight)
+    runs = _runs(flight)
     a, b = max(runs, key=lambda r: r[1] - r[0])
     assert b - a >= 5
     # no contact labels during the flight (the feet leave at once, faster than 2 cm/frame)
@@ -212,132 +195,65 @@ def test_jump_has_ballistic_flight(jump_clip):
     assert np.max(np.abs(acc)) < 3.0
 
 
-# --- cameras and 2D keypoints -------------------------------------------------------------
+# --- package layout -------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "src" / "jmocap" / "data" / "synthetic"
 
 
-def _pinhole(K, E, X):
-    Km = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
-    P = Km @ E[:3, :]
-    Xh = np.concatenate([X, np.ones(X.shape[:-1] + (1,))], axis=-1)
-    x = Xh @ P.T
-    return x[..., :2] / x[..., 2:3]
+def _imported_synthetic_names():
+    """(file, name) of every ``from jmocap.data.synthetic import name`` in the repository's
+    Python sources and the Markdown docs."""
+    out = []
+    for folder in ("src", "tests", "experiments"):
+        for path in (ROOT / folder).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if isinstance(node, ast.ImportFrom) and node.module == "jmocap.data.synthetic":
+                    out += [(path.name, a.name) for a in node.names]
+    for path in [ROOT / "README.md", *(ROOT / "docs").glob("*.md")]:
+        if path.exists():
+            for m in re.finditer(r"from jmocap\.data\.synthetic import ([\w, ]+)", path.read_text()):
+                out += [(path.name, n.strip()) for n in m.group(1).split(",") if n.strip()]
+    return out
 
 
-def test_clean_keypoints_are_projections():
-    clip = S.generate_clip(4, 0, S.SynthConfig(frames=30, kinds=("stand",), layout="coco17",
-                                               corruption=S.Corruption.none()))
-    uv = _pinhole(clip.intrinsics, clip.extrinsics, clip.gt_keypoints3d.astype(np.float64))
-    np.testing.assert_allclose(clip.keypoints[..., :2], uv, atol=1e-3, rtol=1e-6)
-    assert np.all(clip.keypoints[..., 2] == 1.0)
-    np.testing.assert_allclose(S.clean_keypoints2d(clip), uv, atol=1e-6)
-    # camera: OpenCV axes, in front, upright, within the configured ranges
-    E = clip.extrinsics
-    cam = -E[:3, :3].T @ E[:3, 3]
-    assert 0.3 <= cam[2] <= 2.0
-    fx = clip.intrinsics[0]
-    assert fx <= 2000.0
-    assert tuple(clip.image_size) in S.CameraConfig().image_sizes
-    Xc = clip.gt_keypoints3d.astype(np.float64) @ E[:3, :3].T + E[:3, 3]
-    assert Xc[..., 2].min() > 1.0
-    head, feet = clip.keypoints[:, 0, 1], clip.keypoints[:, 15:17, 1].mean(axis=1)
-    assert np.all(head < feet)  # image y grows downwards: head above the ankles
+def test_every_imported_name_is_exported():
+    names = _imported_synthetic_names()
+    assert len({f for f, _ in names}) >= 5  # cli, tests, experiments, docs import from it
+    for f, name in names:
+        assert name in S.__all__ and hasattr(S, name), (f, name)
+    for name in S.__all__:
+        assert hasattr(S, name), name
 
 
-def test_look_at_matches_camera_module():
-    from jmocap.camera import Camera
-
-    eye, target = np.array([4.0, -2.0, 1.3]), np.array([0.2, 0.5, 0.9])
-    E = S.look_at_extrinsics(eye, target)
-    ref = np.asarray(Camera.look_at(eye, target, dtype=np.float64).extrinsics)
-    np.testing.assert_allclose(E, ref, atol=1e-6)
-
-
-def _corrupted(corruption, T=400, seed=0):
-    rng = np.random.default_rng(seed)
-    lay = get_layout("body25")
-    uv = np.stack([rng.uniform(400, 600, (T, lay.num_joints)),
-                   np.linspace(100, 900, lay.num_joints)[None].repeat(T, 0)], axis=-1)
-    kp, stats = S.corrupt_keypoints(rng, uv, lay, (1000, 1000), corruption)
-    return uv, kp, stats
-
-
-def test_corruption_drop_fraction():
-    for p in (0.05, 0.2):
-        c = S.Corruption(noise_px=0, noise_rel=0, outlier_prob=0, swap_prob=0, drop_prob=p,
-                         drop_outside=False)
-        uv, kp, stats = _corrupted(c)
-        frac = float(np.mean(kp[..., 2] == 0))
-        assert abs(frac - p) < 0.35 * p + 0.01, (p, frac)
-        ok = kp[..., 2] > 0
-        np.testing.assert_allclose(kp[..., :2][ok], uv[ok], atol=1e-3)  # no noise
-        assert np.all(kp[..., :2][~ok] == 0)
-
-
-def test_corruption_noise_outliers_swaps_confidence():
-    c = S.Corruption(noise_px=3.0, noise_rel=0.0, joint_scale=1.0, noise_corr=0.0, outlier_prob=0,
-                     drop_prob=0, swap_prob=0, drop_outside=False)
-    uv, kp, _ = _corrupted(c)
-    err = kp[..., :2] - uv
-    assert abs(err.std() - 3.0) < 0.3
-    assert np.all((kp[..., 2] > 0.4) & (kp[..., 2] <= 1.0))
-    # outliers: large jumps, lower confidence
-    c = S.Corruption(noise_px=0, noise_rel=0, outlier_prob=0.05, drop_prob=0, swap_prob=0,
-                     drop_outside=False)
-    uv, kp, stats = _corrupted(c)
-    moved = np.linalg.norm(kp[..., :2] - uv, axis=-1) > 1.0
-    assert abs(moved.mean() - 0.05) < 0.02
-    assert kp[..., 2][moved].max() <= 0.5 < kp[..., 2][~moved].min()
-    # swaps exchange left/right joints
-    c = S.Corruption(noise_px=0, noise_rel=0, outlier_prob=0, drop_prob=0, swap_prob=0.05,
-                     drop_outside=False)
-    uv, kp, stats = _corrupted(c)
-    assert stats["swap_events"] > 0
-    lay = get_layout("body25")
-    swapped = 0
-    for a, b in lay.flip_pairs:
-        s = np.all(np.abs(kp[:, a, :2] - uv[:, b]) < 1e-3, axis=-1) & np.any(np.abs(uv[:, a] - uv[:, b]) > 1, axis=-1)
-        swapped += int(s.sum())
-    assert swapped > 0
-    # none: exact
-    uv, kp, _ = _corrupted(S.Corruption.none())
-    np.testing.assert_allclose(kp[..., :2], uv, atol=1e-3)
-    assert np.all(kp[..., 2] == 1)
-
-
-# --- physics variant ------------------------------------------------------------------------
-
-
-def test_physics_standing_grf_and_residual():
-    clip = S.generate_clip(3, 0, S.SynthConfig(frames=45, kinds=("stand",), physics=True))
-    ch = _model_for(clip)
-    weight = ch.mass * 9.81
-    assert clip.gt_tau is not None and clip.gt_tau.shape == (45, ch.nv)
-    assert clip.gt_grf.shape == (45, 4, 3)
-    fz = clip.gt_grf[..., 2].sum(axis=1)
-    assert abs(fz.mean() / weight - 1.0) < 0.10
-    assert np.all(clip.gt_grf[..., 2] >= -1e-6)  # the floor only pushes
-    # upright, and residual reported (small when standing)
-    R = S._quat2mat(clip.gt_q[:, 3:7].astype(np.float64))
-    assert np.all(R[:, 2, 2] > np.cos(np.radians(30)))
-    p = clip.meta["physics"]
-    for k in ("residual_force_mean", "residual_force_max", "residual_torque_mean"):
-        assert k in p
-    assert p["residual_force_mean"] < 0.05
-    res = np.linalg.norm(clip.gt_tau[:, :3], axis=1) / weight
-    assert abs(res.mean() - p["residual_force_mean"]) < 1e-3
-    # velocities are the simulation's (consistent with the positions)
-    mj = ch.mj
-    x = clip.gt_q[0].astype(np.float64).copy()
-    mujoco.mj_integratePos(mj, x, clip.gt_qd[0].astype(np.float64), 1.0 / clip.fps)
-    np.testing.assert_allclose(x[:3], clip.gt_q[1, :3], atol=2e-3)
-
-
-@pytest.mark.slow
-def test_physics_walking_stays_upright():
-    clip = S.generate_clip(1, 0, S.SynthConfig(frames=150, kinds=("walk",), physics=True))
-    R = S._quat2mat(clip.gt_q[:, 3:7].astype(np.float64))
-    assert np.all(R[:, 2, 2] > np.cos(np.radians(30)))
-    assert clip.meta["physics"]["residual_force_mean"] < 0.1
+def test_modules_have_docstrings_and_no_import_cycles():
+    graph = {}
+    for path in sorted(PACKAGE.glob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        assert ast.get_docstring(tree), f"{path.name} has no module docstring"
+        deps = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                assert node.level == 0, f"{path.name}: relative import"
+                mod = node.module or ""
+                if path.stem != "__init__":
+                    # a module importing the package root would run __init__ (a cycle)
+                    assert mod != "jmocap.data.synthetic", f"{path.name} imports the package root"
+                if mod.startswith("jmocap.data.synthetic."):
+                    deps.add(mod.rsplit(".", 1)[1])
+            elif isinstance(node, ast.Import):
+                assert not any(a.name.startswith("jmocap.data.synthetic") for a in node.names)
+        graph[path.stem] = deps
+    graph.pop("__init__")
+    assert set().union(*graph.values()) <= set(graph)
+    # Kahn's algorithm: every module gets an order iff the graph has no cycle
+    order, todo = [], dict(graph)
+    while todo:
+        ready = sorted(m for m, d in todo.items() if d <= set(order))
+        assert ready, f"import cycle among {sorted(todo)}"
+        order += ready
+        for m in ready:
+            del todo[m]
 
 
 # --- archive --------------------------------------------------------------------------------

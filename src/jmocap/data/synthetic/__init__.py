@@ -1,0 +1,134 @@
+"""Synthetic motion clips with exact ground truth: a procedural motion generator on MuJoCo.
+
+See ``docs/data.md`` for the full description. In short:
+
+* :func:`generate_motion` plans a motion (walking, running, jumps, squats, lunges, kicks,
+  standing with arm motion, dance-like stepping, and transitions between them) for a
+  character of random height, as footsteps + a centre-of-mass (COM) trajectory + upper-body
+  joint tracks, and turns it into MuJoCo joint angles:
+
+  - every foot contact is a *stance* on a planned footstep: the foot is flat, or rocks about
+    the heel contact point (heel strike) or about the ball of the foot (heel off / toe off);
+    the rocking pivot stays exactly where it is (no sliding);
+  - the horizontal COM trajectory is solved from the support phases (a least-squares
+    "dynamics filter" on the linear inverted pendulum: the zero-moment point stays on the
+    loaded feet; ballistic, ``x'' = 0``, while no foot touches the floor);
+  - the root (pelvis) height follows a ``g = 9.81`` parabola whenever both feet are off the
+    floor (running, jumps);
+  - the legs are solved by Gauss-Newton inverse kinematics on MuJoCo C Jacobians
+    (``mj_jacBody``) so that the feet are exactly where planned; every joint is clipped to
+    its range.
+
+* :func:`generate_clip` adds ground truth (``gt_q``, ``gt_qd`` by ``mj_differentiatePos``,
+  3D keypoints, Rempe et al.'s contact labels), optionally tracks the motion in a MuJoCo
+  simulation (``physics=True``: PD + inverse-dynamics feed-forward on the hinges and a
+  residual root force/torque, giving ``gt_tau`` and ``gt_grf``), samples a static camera
+  and projects noisy 2D keypoints (:class:`Corruption`).
+
+Everything is deterministic for a seed: a clip's random stream is
+``numpy.random.default_rng([seed, index])``.
+
+The package, one concern per module (each imports only the ones above it):
+
+* :mod:`~jmocap.data.synthetic.errors` -- :class:`GenerationError`;
+* :mod:`~jmocap.data.synthetic.rotations`, :mod:`~jmocap.data.synthetic.curves` -- numpy
+  rotation helpers and scalar functions of time;
+* :mod:`~jmocap.data.synthetic.character` -- :class:`Character` (the scaled humanoid, foot
+  geometry, leg IK), :func:`character`;
+* :mod:`~jmocap.data.synthetic.plan` -- :class:`Plan`, :class:`Stance`, :class:`Segment`,
+  :class:`Pose`;
+* :mod:`~jmocap.data.synthetic.motion` -- :class:`Motion`, the realisation of a plan (pelvis
+  height, COM filter, foot targets, leg solve), :func:`check_motion`;
+* :mod:`~jmocap.data.synthetic.repertoire` -- the motion segments, :func:`generate_motion`;
+* :mod:`~jmocap.data.synthetic.ground_truth` -- :func:`velocities`, :func:`contact_labels`;
+* :mod:`~jmocap.data.synthetic.physics` -- :class:`PhysicsConfig`, :func:`simulate_tracking`;
+* :mod:`~jmocap.data.synthetic.cameras`, :mod:`~jmocap.data.synthetic.keypoints` --
+  :class:`CameraConfig`, :func:`sample_camera`; :class:`Corruption`,
+  :func:`corrupt_keypoints`, :func:`clean_keypoints2d`;
+* :mod:`~jmocap.data.synthetic.clips` -- :class:`SynthConfig`, :func:`generate_clip`,
+  :func:`synthesize`.
+"""
+
+from __future__ import annotations
+
+from jmocap.data.synthetic.cameras import (
+    CameraConfig,
+    look_at_extrinsics,
+    project_points,
+    sample_camera,
+)
+from jmocap.data.synthetic.character import SIDES, Character, character, site_trajectories
+from jmocap.data.synthetic.clips import (
+    GENERATOR,
+    SynthConfig,
+    clip_name,
+    generate_clip,
+    synthesize,
+)
+from jmocap.data.synthetic.errors import GenerationError
+from jmocap.data.synthetic.ground_truth import (
+    CONTACT_MAX_HEIGHT_M,
+    CONTACT_MAX_STEP_M,
+    contact_labels,
+    velocities,
+)
+from jmocap.data.synthetic.keypoints import Corruption, clean_keypoints2d, corrupt_keypoints
+from jmocap.data.synthetic.motion import Motion, check_motion, motion_report
+from jmocap.data.synthetic.physics import PhysicsConfig, simulate_tracking
+from jmocap.data.synthetic.plan import MOTION_KINDS, Plan, Pose, Segment, Stance
+from jmocap.data.synthetic.repertoire import (
+    GESTURES,
+    SEGMENTS,
+    generate_motion,
+    seg_dance,
+    seg_jump,
+    seg_kick,
+    seg_locomotion,
+    seg_lunge,
+    seg_squat,
+    seg_stand,
+)
+
+__all__ = [
+    "CONTACT_MAX_HEIGHT_M",
+    "CONTACT_MAX_STEP_M",
+    "GENERATOR",
+    "GESTURES",
+    "MOTION_KINDS",
+    "SEGMENTS",
+    "SIDES",
+    "CameraConfig",
+    "Character",
+    "Corruption",
+    "GenerationError",
+    "Motion",
+    "PhysicsConfig",
+    "Plan",
+    "Pose",
+    "Segment",
+    "Stance",
+    "SynthConfig",
+    "character",
+    "check_motion",
+    "clean_keypoints2d",
+    "clip_name",
+    "contact_labels",
+    "corrupt_keypoints",
+    "generate_clip",
+    "generate_motion",
+    "look_at_extrinsics",
+    "motion_report",
+    "project_points",
+    "sample_camera",
+    "seg_dance",
+    "seg_jump",
+    "seg_kick",
+    "seg_locomotion",
+    "seg_lunge",
+    "seg_squat",
+    "seg_stand",
+    "simulate_tracking",
+    "site_trajectories",
+    "synthesize",
+    "velocities",
+]

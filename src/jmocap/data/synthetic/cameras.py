@@ -1,0 +1,100 @@
+"""Static cameras of the synthetic clips: configuration, look-at placement, sampling.
+
+:func:`look_at_extrinsics` and :func:`project_points` are numpy (float64) twins of
+:meth:`jmocap.camera.Camera.look_at` and :func:`jmocap.camera.project` (same maths, same
+OpenCV conventions); :func:`sample_camera` places a camera that keeps the subject in view.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from jmocap.data.synthetic.errors import GenerationError
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Static pinhole cameras looking at the subject (OpenCV axes, no distortion)."""
+
+    focal_px: tuple[float, float] = (500.0, 2000.0)
+    image_sizes: tuple[tuple[int, int], ...] = ((1920, 1080), (1280, 720), (1080, 1920), (1000, 1000))
+    distance_m: tuple[float, float] = (3.0, 8.0)
+    height_m: tuple[float, float] = (0.3, 2.0)
+    principal_jitter: float = 0.02  # principal point offset, fraction of the image size
+    min_visible: float = 0.95  # fraction of joint-frames that must project inside the image
+    min_depth_m: float = 1.0  # closest any joint may come to the camera
+    tries: int = 30
+
+
+def look_at_extrinsics(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """World->camera [R t; 0 1] (OpenCV axes) of a camera at ``eye`` looking at ``target``
+    (the numpy twin of :meth:`jmocap.camera.Camera.look_at`)."""
+    eye = np.asarray(eye, float)
+    fwd = np.asarray(target, float) - eye
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, np.asarray(up, float))
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    E = np.eye(4)
+    E[:3, :3] = np.stack([right, down, fwd])
+    E[:3, 3] = -E[:3, :3] @ eye
+    return E
+
+
+def project_points(intrinsics, extrinsics, X):
+    """Pinhole projection of world points (..., 3): pixels (..., 2) and depth (...,)."""
+    fx, fy, cx, cy = intrinsics
+    Xc = X @ extrinsics[:3, :3].T + extrinsics[:3, 3]
+    z = Xc[..., 2]
+    uv = np.stack([fx * Xc[..., 0] / z + cx, fy * Xc[..., 1] / z + cy], axis=-1)
+    return uv, z
+
+
+def sample_camera(rng: np.random.Generator, points: np.ndarray, cfg: CameraConfig = CameraConfig()):
+    """A static camera looking at the subject whose world joints over the clip are ``points``
+    (T, J, 3). Resamples until ``min_visible`` of the joint-frames project inside the image and
+    nothing comes closer than ``min_depth_m``; the last resort shortens the focal length until
+    the subject fits. Returns (intrinsics (4,), image_size (2,), extrinsics (4, 4), info)."""
+    flat = points.reshape(-1, 3)
+    centre = (flat.min(axis=0) + flat.max(axis=0)) / 2
+    best = None
+    for attempt in range(cfg.tries):
+        W, H = cfg.image_sizes[int(rng.integers(len(cfg.image_sizes)))]
+        f = float(np.exp(rng.uniform(np.log(cfg.focal_px[0]), np.log(cfg.focal_px[1]))))
+        dist = float(rng.uniform(*cfg.distance_m))
+        cam_h = float(rng.uniform(*cfg.height_m))
+        az = float(rng.uniform(-np.pi, np.pi))
+        eye = np.array([centre[0] + dist * math.cos(az), centre[1] + dist * math.sin(az), cam_h])
+        target = np.array([centre[0], centre[1], float(rng.uniform(0.35, 0.6)) * (flat[:, 2].max())])
+        if abs(np.dot((target - eye) / np.linalg.norm(target - eye), [0, 0, 1])) > 0.98:
+            continue
+        E = look_at_extrinsics(eye, target)
+        cx = W / 2 + float(rng.uniform(-1, 1)) * cfg.principal_jitter * W
+        cy = H / 2 + float(rng.uniform(-1, 1)) * cfg.principal_jitter * H
+        K = np.array([f, f, cx, cy])
+        uv, z = project_points(K, E, flat)
+        if z.min() < cfg.min_depth_m:
+            continue
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        frac = float(inside.mean())
+        cand = (K, np.array([W, H]), E, dict(distance_m=dist, height_m=cam_h, azimuth=az, attempts=attempt + 1))
+        if frac >= cfg.min_visible:
+            return cand
+        if best is None or frac > best[0]:
+            best = (frac, cand)
+    if best is None:
+        raise GenerationError("no camera placement keeps the subject in front of the camera")
+    K, size, E, info = best[1]
+    # shrink the focal length around the principal point until the subject fits
+    for _ in range(40):
+        uv, _z = project_points(K, E, flat)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < size[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < size[1])
+        if inside.mean() >= cfg.min_visible:
+            break
+        K = K.copy()
+        K[:2] *= 0.9
+    info["focal_shrunk"] = True
+    return K, size, E, info

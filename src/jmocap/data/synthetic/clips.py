@@ -1,0 +1,186 @@
+"""Synthetic clips: the configuration and the generator of whole :class:`~jmocap.data.clip.Clip` s.
+
+:func:`generate_clip` draws a subject height, plans and solves a motion (retrying with fresh
+draws when an attempt fails), crops a window, optionally tracks it in simulation, adds the
+ground truth, samples a camera and projects and corrupts the 2D keypoints; everything is
+deterministic in ``(seed, index, config)``. :func:`synthesize` iterates over a seed's clips.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from jmocap.data.clip import Clip
+from jmocap.data.synthetic.cameras import CameraConfig, project_points, sample_camera
+from jmocap.data.synthetic.character import site_trajectories
+from jmocap.data.synthetic.curves import _runs
+from jmocap.data.synthetic.errors import GenerationError
+from jmocap.data.synthetic.ground_truth import (
+    CONTACT_MAX_HEIGHT_M,
+    CONTACT_MAX_STEP_M,
+    _ground_truth,
+    velocities,
+)
+from jmocap.data.synthetic.keypoints import Corruption, corrupt_keypoints
+from jmocap.data.synthetic.motion import check_motion
+from jmocap.data.synthetic.physics import PhysicsConfig, simulate_tracking
+from jmocap.data.synthetic.plan import MOTION_KINDS
+from jmocap.data.synthetic.repertoire import SEGMENTS, generate_motion
+from jmocap.layouts import CONTACT_SITES, get_layout
+
+GENERATOR = "jmocap.data.synthetic/1"
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """What :func:`generate_clip` makes. ``frames`` is a clip length or a (min, max) range."""
+
+    frames: int | tuple[int, int] = (150, 300)
+    fps: float = 30.0
+    layout: str = "body25"
+    physics: bool = False
+    kinds: tuple[str, ...] | None = None  # motion kinds to draw from (default: all)
+    height_m: tuple[float, float] = (1.5, 1.95)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    corruption: Corruption = field(default_factory=Corruption)
+    physics_cfg: PhysicsConfig = field(default_factory=PhysicsConfig)
+    max_attempts: int = 12
+
+    def to_json(self) -> dict:
+        return _jsonable(dataclasses.asdict(self))
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+def _stance_runs(planted: np.ndarray) -> dict:
+    return {name: [[int(a), int(b)] for a, b in _runs(planted[:, i])]
+            for i, name in enumerate(CONTACT_SITES)}
+
+
+def clip_name(index: int) -> str:
+    return f"synth_{index:06d}"
+
+
+def generate_clip(seed: int, index: int = 0, config: SynthConfig = SynthConfig(),
+                  name: str | None = None) -> Clip:
+    """One synthetic clip, deterministic in ``(seed, index, config)``.
+
+    Draws a subject height, plans and solves a motion (retrying with fresh draws when a
+    motion fails its kinematic checks, or falls in the physics variant), crops a window of the
+    requested length, optionally tracks it in simulation, samples a camera and projects and
+    corrupts the 2D keypoints.
+    """
+    layout = get_layout(config.layout)
+    kinds = tuple(config.kinds) if config.kinds else tuple(SEGMENTS)
+    for k in kinds:
+        if k not in SEGMENTS:
+            raise ValueError(f"unknown motion kind {k!r}; known: {sorted(SEGMENTS)}")
+    fr = config.frames
+    errors = []
+    for attempt in range(config.max_attempts):
+        rng = np.random.default_rng([int(seed), int(index), attempt])
+        T = int(fr) if np.isscalar(fr) else int(rng.integers(int(fr[0]), int(fr[1]) + 1))
+        if T < 2:
+            raise ValueError(f"frames per clip must be >= 2, got {T}")
+        height = round(float(rng.uniform(*config.height_m)), 2)
+        try:
+            motion = generate_motion(height, rng, T / config.fps + 0.5, config.fps, kinds)
+            check_motion(motion)
+            if motion.num_frames < T:
+                raise GenerationError("motion shorter than the clip")
+            start = int(rng.integers(0, motion.num_frames - T + 1))
+            motion = motion.slice(start, start + T)
+            ch = motion.character
+            meta: dict[str, Any] = {}
+            q = motion.q
+            tau = grf = None
+            if config.physics:
+                sim = simulate_tracking(ch, q, config.fps, motion.planted, config.physics_cfg)
+                q, qd, tau, grf = sim["q"], sim["qd"], sim["tau"], sim["grf"]
+                meta["physics"] = sim["stats"]
+            else:
+                qd = velocities(ch.mj, q, config.fps)
+            kp3d, contacts = _ground_truth(ch, q, layout, config.fps)
+            if config.physics:
+                heights = site_trajectories(ch, q, ch.check_sites)[..., 2]
+                meta["physics"]["min_site_height"] = float(heights.min())
+            K, size, E, cam_info = sample_camera(rng, kp3d, config.camera)
+            uv, _ = project_points(K, E, kp3d)
+            kp2d, corr = corrupt_keypoints(rng, uv, layout, size, config.corruption)
+        except GenerationError as e:
+            errors.append(f"attempt {attempt}: {e}")
+            continue
+        counts = np.bincount(motion.kind, minlength=len(MOTION_KINDS))
+        present = [MOTION_KINDS[i] for i in np.nonzero(counts)[0]]
+        main = [MOTION_KINDS[i] for i in np.argsort(-counts) if counts[i] > 0 and MOTION_KINDS[i] != "stand"]
+        kind = main[0] if main else "stand"
+        meta.update(
+            generator=GENERATOR,
+            seed=int(seed),
+            index=int(index),
+            attempt=attempt,
+            kind=kind,
+            kinds=present,
+            kind_per_frame=[[MOTION_KINDS[int(motion.kind[a])], int(a), int(b)]
+                            for a, b in _kind_runs(motion.kind)],
+            physics_variant=bool(config.physics),
+            planned_contacts=_stance_runs(motion.planted),
+            flight_frames=int(motion.flight.sum()),
+            camera=_jsonable(cam_info),
+            corruption=_jsonable(dataclasses.asdict(config.corruption)),
+            corruption_stats=corr,
+            contact_rule=dict(max_step_m=CONTACT_MAX_STEP_M, max_height_m=CONTACT_MAX_HEIGHT_M,
+                              frame0="displacement to frame 1"),
+            clean_keypoints2d="project gt_keypoints3d with intrinsics/extrinsics "
+                              "(jmocap.data.synthetic.clean_keypoints2d)",
+            kinematic=_jsonable({k: v for k, v in motion.info.items() if k in ("passes", "ik_err")}),
+        )
+        return Clip(
+            name=name or clip_name(index),
+            layout=layout.name,
+            fps=config.fps,
+            keypoints=kp2d,
+            intrinsics=K,
+            image_size=size,
+            extrinsics=E,
+            gt_q=q,
+            gt_qd=qd,
+            gt_keypoints3d=kp3d,
+            gt_contacts=contacts,
+            gt_tau=tau,
+            gt_grf=grf,
+            height_m=round(ch.height, 6),
+            mass_kg=round(ch.mass, 6),
+            meta=meta,
+        )
+    raise GenerationError(f"clip {index} (seed {seed}): no valid motion in {config.max_attempts} "
+                          f"attempts: " + "; ".join(errors[-3:]))
+
+
+def _kind_runs(kind):
+    out = []
+    a = 0
+    for i in range(1, len(kind) + 1):
+        if i == len(kind) or kind[i] != kind[a]:
+            out.append((a, i))
+            a = i
+    return out
+
+
+def synthesize(n: int, seed: int, config: SynthConfig = SynthConfig(), start: int = 0) -> Iterator[Clip]:
+    """Clips ``start .. start + n - 1`` of the stream for ``seed``."""
+    for i in range(start, start + n):
+        yield generate_clip(seed, i, config)

@@ -1,0 +1,131 @@
+"""Small numpy rotation helpers of the generator (matrices, rotation vectors, quaternions).
+
+These run on plain float64 numpy arrays inside the generator's Python loops: the leg IK
+(:meth:`~jmocap.data.synthetic.character.Character.solve_legs` calls :func:`_exp_rot` and
+:func:`_log_rot` for every joint at every Gauss-Newton iteration, on sub-batches of varying
+size), the foot geometry of every stance and the swing interpolation. ``jmocap.physics.rotations``
+holds the package's JAX versions of the same maths (``axis_angle_to_mat``, ``quat_to_mat``,
+``mat_to_quat``); an eager JAX call costs milliseconds of dispatch (and a jit would recompile
+for every new batch size), against microseconds here, so the hot-loop helpers stay numpy.
+"""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+import numpy as np
+
+
+def _rx(a):
+    a = np.asarray(a, float)
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros(a.shape + (3, 3))
+    R[..., 0, 0] = 1.0
+    R[..., 1, 1], R[..., 1, 2], R[..., 2, 1], R[..., 2, 2] = c, -s, s, c
+    return R
+
+
+def _ry(a):
+    a = np.asarray(a, float)
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros(a.shape + (3, 3))
+    R[..., 1, 1] = 1.0
+    R[..., 0, 0], R[..., 0, 2], R[..., 2, 0], R[..., 2, 2] = c, s, -s, c
+    return R
+
+
+def _rz(a):
+    a = np.asarray(a, float)
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros(a.shape + (3, 3))
+    R[..., 2, 2] = 1.0
+    R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1] = c, -s, s, c
+    return R
+
+
+def _log_rot(R):
+    """Rotation vectors (..., 3) of rotation matrices (..., 3, 3)."""
+    R = np.asarray(R, float)
+    tr = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    th = np.arccos(tr)
+    v = np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
+    )
+    s = np.sin(th)
+    small = s < 1e-6
+    scale = np.where(small, 0.5 + th**2 / 12.0, th / (2.0 * np.where(small, 1.0, s)))
+    w = v * scale[..., None]
+    # near pi: use the symmetric part
+    near_pi = (th > np.pi - 1e-3)
+    if np.any(near_pi):
+        Rp = R[near_pi]
+        out = []
+        for Ri, thi in zip(Rp, th[near_pi], strict=True):
+            B = (Ri + np.eye(3)) / 2.0
+            k = int(np.argmax(np.diag(B)))
+            axis = B[:, k] / math.sqrt(max(B[k, k], 1e-12))
+            out.append(axis * thi)
+        w[near_pi] = np.array(out)
+    return w
+
+
+def _exp_rot(w):
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (Rodrigues)."""
+    w = np.asarray(w, float)
+    th = np.linalg.norm(w, axis=-1)
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    k = w / ths[..., None]
+    K = np.zeros(w.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -k[..., 2], k[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = k[..., 2], -k[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -k[..., 1], k[..., 0]
+    s = np.where(small, 0.0, np.sin(th))[..., None, None]
+    c = np.where(small, 0.0, 1.0 - np.cos(th))[..., None, None]
+    return np.eye(3) + s * K + c * (K @ K)
+
+
+def _slerp_R(R0, R1, h):
+    """Geodesic interpolation of rotation matrices: ``R0 exp(h log(R0^T R1))``."""
+    h = np.asarray(h, float)
+    d = _log_rot(np.swapaxes(R0, -1, -2) @ R1)
+    return R0 @ _exp_rot(d * h[..., None])
+
+
+def _mat2quat(R):
+    """wxyz quaternions (..., 4) of rotation matrices (..., 3, 3), w >= 0."""
+    R = np.asarray(R, float)
+    shp = R.shape[:-2]
+    R = R.reshape(-1, 3, 3)
+    q = np.empty((R.shape[0], 4))
+    for i, Ri in enumerate(R):
+        mujoco.mju_mat2Quat(q[i], Ri.reshape(9))
+    q[q[:, 0] < 0] *= -1.0
+    return q.reshape(shp + (4,))
+
+
+def _quat2mat(q):
+    q = np.asarray(q, float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    R[..., 0, 1] = 2 * (x * y - w * z)
+    R[..., 0, 2] = 2 * (x * z + w * y)
+    R[..., 1, 0] = 2 * (x * y + w * z)
+    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    R[..., 1, 2] = 2 * (y * z - w * x)
+    R[..., 2, 0] = 2 * (x * z - w * y)
+    R[..., 2, 1] = 2 * (y * z + w * x)
+    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def _continuous_quats(q):
+    """Flip signs so consecutive quaternions lie in the same hemisphere."""
+    q = np.array(q, float)
+    for t in range(1, len(q)):
+        if np.dot(q[t], q[t - 1]) < 0:
+            q[t] = -q[t]
+    return q

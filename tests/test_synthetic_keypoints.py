@@ -1,0 +1,139 @@
+"""Cameras and 2D keypoints of the synthetic clips (``jmocap.data.synthetic.cameras`` and
+``jmocap.data.synthetic.keypoints``).
+
+References: a homogeneous ``K [R t]`` numpy pinhole, :meth:`jmocap.camera.Camera.look_at`,
+the configured probabilities and noise levels of :class:`Corruption` (statistical bounds).
+
+Tolerances: projections 1e-3 px for stored clips (float32 storage of 3D points ~1e-7 m at
+<= 8 m gives ~1e-4 px), 1e-9 px for float64 inputs; look-at 1e-6 (the JAX camera runs in
+float32 unless x64 is on); drop / outlier fractions within the binomial spread of 400 x 25
+draws (documented at each assertion).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jmocap.data import synthetic as S
+from jmocap.layouts import get_layout
+
+
+def _pinhole(K, E, X):
+    Km = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
+    P = Km @ E[:3, :]
+    Xh = np.concatenate([X, np.ones(X.shape[:-1] + (1,))], axis=-1)
+    x = Xh @ P.T
+    return x[..., :2] / x[..., 2:3]
+
+
+def test_clean_keypoints_are_projections():
+    clip = S.generate_clip(4, 0, S.SynthConfig(frames=30, kinds=("stand",), layout="coco17",
+                                               corruption=S.Corruption.none()))
+    uv = _pinhole(clip.intrinsics, clip.extrinsics, clip.gt_keypoints3d.astype(np.float64))
+    np.testing.assert_allclose(clip.keypoints[..., :2], uv, atol=1e-3, rtol=1e-6)
+    assert np.all(clip.keypoints[..., 2] == 1.0)
+    np.testing.assert_allclose(S.clean_keypoints2d(clip), uv, atol=1e-6)
+    # camera: OpenCV axes, in front, upright, within the configured ranges
+    E = clip.extrinsics
+    cam = -E[:3, :3].T @ E[:3, 3]
+    assert 0.3 <= cam[2] <= 2.0
+    fx = clip.intrinsics[0]
+    assert fx <= 2000.0
+    assert tuple(clip.image_size) in S.CameraConfig().image_sizes
+    Xc = clip.gt_keypoints3d.astype(np.float64) @ E[:3, :3].T + E[:3, 3]
+    assert Xc[..., 2].min() > 1.0
+    head, feet = clip.keypoints[:, 0, 1], clip.keypoints[:, 15:17, 1].mean(axis=1)
+    assert np.all(head < feet)  # image y grows downwards: head above the ankles
+
+
+def test_look_at_matches_camera_module():
+    from jmocap.camera import Camera
+
+    eye, target = np.array([4.0, -2.0, 1.3]), np.array([0.2, 0.5, 0.9])
+    E = S.look_at_extrinsics(eye, target)
+    ref = np.asarray(Camera.look_at(eye, target, dtype=np.float64).extrinsics)
+    np.testing.assert_allclose(E, ref, atol=1e-6)
+
+
+def test_project_points_is_the_pinhole():
+    rng = np.random.default_rng(0)
+    E = S.look_at_extrinsics([3.0, -4.0, 1.5], [0.2, 0.1, 0.9])
+    K = np.array([1200.0, 1180.0, 950.0, 530.0])
+    X = rng.uniform([-1, -1, 0], [1, 1, 2], (7, 25, 3))
+    uv, z = S.project_points(K, E, X)
+    assert uv.shape == (7, 25, 2) and z.shape == (7, 25)
+    np.testing.assert_allclose(uv, _pinhole(K, E, X), atol=1e-9)
+    np.testing.assert_allclose(z, X @ E[2, :3] + E[2, 3], atol=1e-12)
+
+
+def test_sample_camera_keeps_the_subject_in_view():
+    rng = np.random.default_rng(3)
+    cfg = S.CameraConfig()
+    T, J = 60, 25
+    pts = np.zeros((T, J, 3))
+    pts[..., 0] = np.linspace(0, 3, T)[:, None] + rng.uniform(-0.2, 0.2, (T, J))  # walks 3 m
+    pts[..., 1] = rng.uniform(-0.2, 0.2, (T, J))
+    pts[..., 2] = rng.uniform(0.0, 1.8, (T, J))
+    for _ in range(5):
+        K, size, E, info = S.sample_camera(rng, pts, cfg)
+        uv, z = _pinhole(K, E, pts), (pts @ E[:3, :3].T + E[:3, 3])[..., 2]
+        inside = (uv[..., 0] >= 0) & (uv[..., 0] < size[0]) & (uv[..., 1] >= 0) & (uv[..., 1] < size[1])
+        assert inside.mean() >= cfg.min_visible
+        assert z.min() >= cfg.min_depth_m
+        assert tuple(size) in cfg.image_sizes
+        cam = -E[:3, :3].T @ E[:3, 3]
+        assert cfg.height_m[0] <= cam[2] <= cfg.height_m[1]
+        np.testing.assert_allclose(E[:3, :3] @ E[:3, :3].T, np.eye(3), atol=1e-12)
+        assert E[1, 2] < 0  # camera y (image down) points to world -z: upright image
+
+
+def _corrupted(corruption, T=400, seed=0):
+    rng = np.random.default_rng(seed)
+    lay = get_layout("body25")
+    uv = np.stack([rng.uniform(400, 600, (T, lay.num_joints)),
+                   np.linspace(100, 900, lay.num_joints)[None].repeat(T, 0)], axis=-1)
+    kp, stats = S.corrupt_keypoints(rng, uv, lay, (1000, 1000), corruption)
+    return uv, kp, stats
+
+
+def test_corruption_drop_fraction():
+    for p in (0.05, 0.2):
+        c = S.Corruption(noise_px=0, noise_rel=0, outlier_prob=0, swap_prob=0, drop_prob=p,
+                         drop_outside=False)
+        uv, kp, stats = _corrupted(c)
+        frac = float(np.mean(kp[..., 2] == 0))
+        assert abs(frac - p) < 0.35 * p + 0.01, (p, frac)
+        ok = kp[..., 2] > 0
+        np.testing.assert_allclose(kp[..., :2][ok], uv[ok], atol=1e-3)  # no noise
+        assert np.all(kp[..., :2][~ok] == 0)
+
+
+def test_corruption_noise_outliers_swaps_confidence():
+    c = S.Corruption(noise_px=3.0, noise_rel=0.0, joint_scale=1.0, noise_corr=0.0, outlier_prob=0,
+                     drop_prob=0, swap_prob=0, drop_outside=False)
+    uv, kp, _ = _corrupted(c)
+    err = kp[..., :2] - uv
+    assert abs(err.std() - 3.0) < 0.3
+    assert np.all((kp[..., 2] > 0.4) & (kp[..., 2] <= 1.0))
+    # outliers: large jumps, lower confidence
+    c = S.Corruption(noise_px=0, noise_rel=0, outlier_prob=0.05, drop_prob=0, swap_prob=0,
+                     drop_outside=False)
+    uv, kp, stats = _corrupted(c)
+    moved = np.linalg.norm(kp[..., :2] - uv, axis=-1) > 1.0
+    assert abs(moved.mean() - 0.05) < 0.02
+    assert kp[..., 2][moved].max() <= 0.5 < kp[..., 2][~moved].min()
+    # swaps exchange left/right joints
+    c = S.Corruption(noise_px=0, noise_rel=0, outlier_prob=0, drop_prob=0, swap_prob=0.05,
+                     drop_outside=False)
+    uv, kp, stats = _corrupted(c)
+    assert stats["swap_events"] > 0
+    lay = get_layout("body25")
+    swapped = 0
+    for a, b in lay.flip_pairs:
+        s = np.all(np.abs(kp[:, a, :2] - uv[:, b]) < 1e-3, axis=-1) & np.any(np.abs(uv[:, a] - uv[:, b]) > 1, axis=-1)
+        swapped += int(s.sum())
+    assert swapped > 0
+    # none: exact
+    uv, kp, _ = _corrupted(S.Corruption.none())
+    np.testing.assert_allclose(kp[..., :2], uv, atol=1e-3)
+    assert np.all(kp[..., 2] == 1)
