@@ -1,4 +1,4 @@
-"""Tests of jmocap.data.clip and jmocap.data.formats.
+"""Tests of jmocap.data.clip and the jmocap.data.formats package (one section per module).
 
 Input files are written by hand here, following each format's own specification (OpenPose
 ``doc/02_output.md``, the COCO results format, MMPose's inferencer output, VideoPose3D's
@@ -219,7 +219,7 @@ def test_clip_slice():
 
 
 # --------------------------------------------------------------------------------------------
-# missing-joint rules
+# missing-joint rules (formats/common.py)
 # --------------------------------------------------------------------------------------------
 
 
@@ -247,7 +247,7 @@ def test_clean_keypoints_rules():
 
 
 # --------------------------------------------------------------------------------------------
-# OpenPose
+# OpenPose (formats/openpose.py; person tracking: formats/person.py)
 # --------------------------------------------------------------------------------------------
 
 
@@ -398,7 +398,7 @@ def test_openpose_writer_round_trip(tmp_path):
 
 
 # --------------------------------------------------------------------------------------------
-# COCO
+# COCO (formats/coco.py)
 # --------------------------------------------------------------------------------------------
 
 
@@ -496,7 +496,7 @@ def test_coco_writer_round_trip_and_errors(tmp_path):
 
 
 # --------------------------------------------------------------------------------------------
-# MMPose
+# MMPose (formats/mmpose.py)
 # --------------------------------------------------------------------------------------------
 
 
@@ -561,7 +561,7 @@ def test_mmpose_round_trip_and_errors(tmp_path):
 
 
 # --------------------------------------------------------------------------------------------
-# VideoPose3D, plain arrays, AMASS
+# VideoPose3D, plain arrays, AMASS (formats/videopose3d.py, arrays.py, amass.py)
 # --------------------------------------------------------------------------------------------
 
 
@@ -676,7 +676,7 @@ def test_amass_joints(tmp_path):
 
 
 # --------------------------------------------------------------------------------------------
-# read_clip dispatch and sidecars
+# read_clip dispatch (formats/__init__.py) and sidecars (formats/camera_file.py)
 # --------------------------------------------------------------------------------------------
 
 
@@ -721,3 +721,20 @@ def test_read_clip_dispatch_and_sidecar(tmp_path):
     with pytest.raises(FormatError, match="unknown keypoint file type"):
         (tmp_path / "x.txt").write_text("hi")
         read_clip(tmp_path / "x.txt")
+
+
+def test_package_re_exports_every_public_name_of_its_modules():
+    """``jmocap.data.formats`` (the import path callers use) offers each module's public names."""
+    import importlib
+    import pkgutil
+
+    import jmocap.data.formats as formats
+
+    modules = [m.name for m in pkgutil.iter_modules(formats.__path__)]
+    assert {"common", "keypoints", "openpose", "coco", "mmpose", "videopose3d"} <= set(modules)
+    for m in modules:
+        mod = importlib.import_module(f"jmocap.data.formats.{m}")
+        assert mod.__doc__, m
+        for name in mod.__all__:
+            assert name in formats.__all__, f"{m}.{name} not in jmocap.data.formats.__all__"
+            assert getattr(formats, name) is getattr(mod, name), f"{m}.{name}"

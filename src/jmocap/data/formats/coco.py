@@ -1,0 +1,201 @@
+"""COCO keypoints: the results list (what ``COCO.loadRes`` reads) and annotation files.
+
+:func:`read_coco_json`, :func:`write_coco_results`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import numpy as np
+
+from jmocap.data.clip import Clip
+from jmocap.data.formats.common import (
+    _atomic_write_text,
+    _check_nonempty,
+    _ferr,
+    _fill_gaps,
+    _flat_triplets,
+    _load_json,
+    clean_keypoints,
+)
+from jmocap.data.formats.keypoints import Keypoints2D
+from jmocap.data.formats.person import Candidate, select_person
+from jmocap.layouts import get_layout
+
+
+def _frame_index(image_ids, frame_of, path):
+    if frame_of is None:
+        bad = [i for i in image_ids if not isinstance(i, int) or isinstance(i, bool)]
+        if bad:
+            raise _ferr(
+                path,
+                f"image_id {bad[0]!r} is not an integer; pass frame_of= to map image ids to frames",
+                field="image_id",
+            )
+        return list(image_ids)
+    out = []
+    for i in image_ids:
+        try:
+            f = frame_of(i) if callable(frame_of) else frame_of[i]
+        except (KeyError, IndexError):
+            raise _ferr(
+                path, f"image_id {i!r} is not in the frame_of mapping", field="image_id"
+            ) from None
+        out.append(int(f))
+    return out
+
+
+def _group_frames(path, frame_ids, cands_by_entry, fill_from_zero):
+    by_frame: dict[int, list[Candidate]] = {}
+    for f, c in zip(frame_ids, cands_by_entry, strict=True):
+        by_frame.setdefault(f, [])
+        if c is not None:
+            by_frame[f].append(c)
+    ids = sorted(by_frame)
+    if not ids:
+        return np.zeros(0, np.int64), []
+    if fill_from_zero and ids[0] > 0:
+        by_frame.setdefault(0, [])
+        ids = [0] + ids
+    return _fill_gaps(ids, [by_frame[i] for i in ids], path, [])
+
+
+def read_coco_json(
+    path: str | os.PathLike,
+    *,
+    frame_of: Mapping | Callable | None = None,
+    person: str = "track",
+    name: str | None = None,
+    layout: str = "coco17",
+) -> Keypoints2D:
+    """Read COCO-17 keypoints: a results list or an annotation file.
+
+    * Results (what ``COCO.loadRes`` / COCO keypoint evaluation read): a JSON list of
+      ``{"image_id": int, "category_id": 1, "keypoints": [x, y, v] * 17, "score": float}``;
+      ``v`` is the keypoint confidence. Several entries per image are several people
+      (:func:`select_person`, score = ``score``).
+    * Annotations (``person_keypoints_*.json``): a dict with ``images`` and ``annotations``;
+      ``v`` is the visibility flag (0 not labelled, 1 labelled but occluded, 2 visible): v > 0
+      gives confidence 1. The frame order is the ``images`` order unless ``frame_of`` is given.
+
+    Frames: by default the image id *is* the frame number (ids are integers, the clip spans the
+    smallest to the largest id present, gaps become missing frames); ``frame_of`` (a mapping or
+    a function image_id -> frame number) overrides this. ``category_id`` other than 1 (person)
+    is skipped. No fps, image size or camera is stored (COCO image entries' ``width``/``height``
+    are used when present and all equal).
+    """
+    path = Path(path)
+    data = _load_json(path)
+    J = get_layout(layout).num_joints
+    image_size = None
+    if isinstance(data, dict) and "annotations" in data:
+        entries = data["annotations"]
+        kind = "coco_annotations"
+        images = data.get("images") or []
+        if frame_of is None and images:
+            order = {
+                img["id"]: k
+                for k, img in enumerate(images)
+                if isinstance(img, dict) and "id" in img
+            }
+            frame_of = order
+        sizes = {(img.get("width"), img.get("height")) for img in images if isinstance(img, dict)}
+        if len(sizes) == 1:
+            w, h = sizes.pop()
+            if isinstance(w, int) and isinstance(h, int) and w > 0 and h > 0:
+                image_size = (w, h)
+    elif isinstance(data, list):
+        entries = data
+        kind = "coco_results"
+    else:
+        raise _ferr(path, "not a COCO keypoint results list or annotation file")
+    if not isinstance(entries, list):
+        raise _ferr(path, "must be a list", field="annotations")
+    image_ids, cands = [], []
+    for k, e in enumerate(entries):
+        if not isinstance(e, dict) or "image_id" not in e:
+            raise _ferr(path, f"entry {k} has no 'image_id'", field="image_id")
+        image_ids.append(e["image_id"])
+    frames = _frame_index(image_ids, frame_of, path)
+    for k, (e, f) in enumerate(zip(entries, frames, strict=True)):
+        if e.get("category_id", 1) != 1:
+            cands.append(None)
+            continue
+        if "keypoints" not in e:
+            raise _ferr(path, f"entry {k} has no keypoints", f, "keypoints")
+        kp = _flat_triplets(e["keypoints"], J, path, f, f"[{k}].keypoints", f"COCO-{J}")
+        if kind == "coco_annotations":
+            vis = np.nan_to_num(kp[:, 2]) > 0
+            kp[:, 2] = vis.astype(np.float64)
+            score = float(vis.sum()) / J
+        else:
+            score = e.get("score")
+            if score is None:
+                score = float(np.nanmean(np.clip(kp[:, 2], 0, 1)))
+            try:
+                score = float(score)
+            except (TypeError, ValueError):
+                raise _ferr(
+                    path, f"entry {k}: score {score!r} is not a number", f, "score"
+                ) from None
+        kp = clean_keypoints(kp)
+        track = e.get("track_id")
+        cands.append(
+            Candidate(
+                kp,
+                score if np.isfinite(score) else 0.0,
+                int(track) if isinstance(track, int) and track >= 0 else None,
+            )
+            if (kp[:, 2] > 0).any()
+            else None
+        )
+    frame_ids, per_frame = _group_frames(path, frames, cands, fill_from_zero=False)
+    _check_nonempty(path, len(frame_ids))
+    kp, _ = select_person(per_frame, J, person)
+    return Keypoints2D(
+        keypoints=kp,
+        layout=layout,
+        name=name or path.stem,
+        frame_ids=frame_ids,
+        image_size=image_size,
+        source=str(path),
+        meta={"format": kind, "person_selection": person},
+    )
+
+
+def write_coco_results(
+    clip: Clip | Keypoints2D, path: str | os.PathLike, *, first_image_id: int = 0
+) -> Path:
+    """Write a coco17 clip as a COCO keypoint results list (image_id = first_image_id + frame).
+
+    ``keypoints`` is ``[x, y, confidence] * 17`` (missing joints 0, 0, 0) and ``score`` the mean
+    confidence of the visible joints; frames with no visible joint are left out, as a detector
+    with no detection would.
+    """
+    if clip.layout != "coco17":
+        raise ValueError(f"COCO results need a coco17 clip, got layout {clip.layout!r}")
+    out = []
+    for t, kp in enumerate(np.asarray(clip.keypoints, np.float32)):
+        vis = kp[:, 2] > 0
+        if not vis.any():
+            continue
+        kp = kp.copy()
+        kp[~vis] = 0.0
+        out.append(
+            {
+                "image_id": first_image_id + t,
+                "category_id": 1,
+                "keypoints": [float(v) for v in kp.reshape(-1)],
+                "score": float(kp[vis, 2].mean()),
+            }
+        )
+    path = Path(path)
+    _atomic_write_text(path, json.dumps(out))
+    return path
+
+
+__all__ = ["read_coco_json", "write_coco_results"]

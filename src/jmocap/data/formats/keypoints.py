@@ -1,0 +1,118 @@
+"""What every 2D reader returns: :class:`Keypoints2D`, and its conversion to a :class:`Clip`.
+
+A reader keeps what its file says about the video (fps, image size, camera) and leaves the rest
+``None``; :meth:`Keypoints2D.to_clip` fills the gaps from arguments, the camera sidecar
+(:mod:`jmocap.data.formats.camera_file`) and the defaults (:data:`DEFAULT_FPS`, the default
+intrinsics of :mod:`jmocap.camera`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from jmocap.camera import default_intrinsics
+from jmocap.data.clip import Clip, FormatError
+from jmocap.data.formats.camera_file import read_camera_json, sidecar_path
+
+DEFAULT_FPS = 30.0
+
+
+@dataclass(frozen=True, eq=False)
+class Keypoints2D:
+    """2D keypoints read from a file, plus what the file says about the video.
+
+    ``keypoints`` (T, J, 3) float32 ``x, y`` pixels and confidence in [0, 1] (0 = missing, then
+    x = y = 0); ``frame_ids`` (T,) the source frame numbers (consecutive: gaps in the source are
+    filled with missing frames); ``fps``, ``image_size``, ``intrinsics``, ``extrinsics`` are
+    ``None`` when the file does not say.
+    """
+
+    keypoints: np.ndarray
+    layout: str
+    name: str
+    frame_ids: np.ndarray
+    fps: float | None = None
+    image_size: tuple[int, int] | None = None
+    intrinsics: np.ndarray | None = None
+    extrinsics: np.ndarray | None = None
+    source: str = ""
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.keypoints.shape[0])
+
+    def replace(self, **changes) -> Keypoints2D:
+        return dataclasses.replace(self, **changes)
+
+    def to_clip(
+        self,
+        *,
+        fps: float | None = None,
+        image_size: Sequence[int] | None = None,
+        intrinsics: Sequence[float] | None = None,
+        extrinsics: np.ndarray | None = None,
+        name: str | None = None,
+        camera_json: str | os.PathLike | None = None,
+    ) -> Clip:
+        """A :class:`Clip`; arguments override the file's own values.
+
+        Precedence for each of fps / image size / intrinsics / extrinsics: the argument, then
+        ``camera_json`` (a sidecar, see :func:`read_camera_json`), then the file's own value,
+        then the default: ``fps`` 30 (:data:`DEFAULT_FPS`), intrinsics
+        :func:`jmocap.camera.default_intrinsics` (f = 1000 px, principal point at the image
+        centre), no extrinsics. There is no default image size: without one a
+        :class:`FormatError` asks for it. Defaults that were used are listed in
+        ``clip.meta["assumed"]``.
+        """
+        side = read_camera_json(camera_json) if camera_json is not None else {}
+        where = self.source or self.name
+        assumed = []
+
+        def pick(arg, key, own):
+            if arg is not None:
+                return arg
+            if side.get(key) is not None:
+                return side[key]
+            return own
+
+        size = pick(image_size, "image_size", self.image_size)
+        if size is None:
+            raise FormatError(
+                f"{where}: no image size: the format does not store one; pass image_size=(width, "
+                f"height) or write a sidecar camera file {sidecar_path(where).name if self.source else '<clip>.camera.json'}"
+            )
+        size = tuple(int(v) for v in size)
+        intr = pick(intrinsics, "intrinsics", self.intrinsics)
+        if intr is None:
+            intr = default_intrinsics(*size)
+            assumed.append("intrinsics")
+        extr = pick(extrinsics, "extrinsics", self.extrinsics)
+        f = pick(fps, "fps", self.fps)
+        if f is None:
+            f = DEFAULT_FPS
+            assumed.append("fps")
+        meta = dict(self.meta)
+        meta.setdefault("source", self.source)
+        meta["first_frame"] = int(self.frame_ids[0]) if len(self.frame_ids) else 0
+        if assumed:
+            meta["assumed"] = assumed
+        return Clip(
+            name=name if name is not None else self.name,
+            layout=self.layout,
+            fps=float(f),
+            keypoints=self.keypoints,
+            intrinsics=np.asarray(intr, np.float64),
+            image_size=np.asarray(size),
+            extrinsics=None if extr is None else np.asarray(extr, np.float64),
+            meta=meta,
+        )
+
+
+__all__ = ["DEFAULT_FPS", "Keypoints2D"]
