@@ -128,12 +128,17 @@ def test_compiles_with_smpl_bodies(model):
 
 
 def test_dimensions(model):
-    assert model.nq == 48
-    assert model.nv == 47
+    """nq / nv / joint counts as MuJoCo compiles them, against the per-body hinge specification
+    (HINGES, left side and midline; the right side mirrors the left)."""
+    n_hinges = sum(n * (2 if body.startswith("left_") else 1) for body, n in HINGES.items())
+    assert model.nq == 7 + n_hinges and model.nv == 6 + n_hinges
     assert model.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE
     assert model.joint(0).name == "root" and model.body(model.jnt_bodyid[0]).name == "pelvis"
-    assert len(hinge_ids(model)) == 41
-    assert model.njnt == 42 and model.nu == 0
+    assert len(hinge_ids(model)) == n_hinges == model.njnt - 1
+    assert model.nu == 0  # torques are the controller's, not actuators'
+    for body, n in HINGES.items():
+        for b in {body, mirror_name(body)}:
+            assert model.body(b).jntnum[0] == n, b
 
 
 def test_hinges_named_and_anchored(model):
@@ -155,24 +160,39 @@ def test_hinges_named_and_anchored(model):
     np.testing.assert_array_equal(model.body_iquat[1:], np.tile([1.0, 0, 0, 0], (24, 1)))
 
 
-def test_armature_and_damping(model):
-    dofs = model.jnt_dofadr[hinge_ids(model)]
-    np.testing.assert_array_equal(model.dof_armature[dofs], 0.01)
-    np.testing.assert_array_equal(model.dof_damping, 0.0)
-    np.testing.assert_array_equal(model.dof_armature[:6], 0.0)  # root: none
+def test_armature_on_the_hinges_only_and_no_passive_forces(model):
+    """What MuJoCo compiles from the hinge default class: the armature is added to the diagonal
+    of the joint-space inertia at every hinge DoF and nowhere else (the root freejoint ignores
+    defaults), the same on every hinge; no damping, springs or other passive forces."""
+    rng = np.random.default_rng(1)
+    bare = mujoco.MjModel.from_xml_path(str(XML))
+    bare.dof_armature[:] = 0.0
+    d, d0 = mujoco.MjData(model), mujoco.MjData(bare)
+    for data, m in ((d, model), (d0, bare)):
+        mujoco.mj_resetDataKeyframe(m, data, m.key("stand").id)
+        data.qpos[7:] = rng.uniform(-0.3, 0.3, model.nq - 7) if m is model else d.qpos[7:]
+        data.qvel[:] = rng.normal(size=model.nv) if m is model else d.qvel
+        mujoco.mj_forward(m, data)
+    M, M0 = np.zeros((2, model.nv, model.nv))
+    mujoco.mj_fullM(model, d, M)
+    mujoco.mj_fullM(bare, d0, M0)
+    added = M - M0
+    np.testing.assert_allclose(added, np.diag(np.diag(added)), atol=1e-15)
+    arm = np.diag(added)
+    np.testing.assert_array_equal(arm[:6], 0.0)
+    assert np.all(arm[6:] > 0) and np.ptp(arm[6:]) < 1e-15
+    # no passive force at a random velocity
+    np.testing.assert_array_equal(d.qfrc_passive, 0.0)
 
 
 def test_option(model):
+    """The conventions of docs/DESIGN: z up, gravity -9.81 z (the body weight mass * 9.81 the
+    code divides forces by), and the 100 Hz step the dynamic cycle integrates with."""
     assert model.opt.timestep == 0.01
     np.testing.assert_array_equal(model.opt.gravity, [0, 0, -9.81])
 
 
 # ---- mass properties --------------------------------------------------------------------
-
-
-def test_total_mass(model):
-    assert abs(model.body_mass.sum() - TOTAL_MASS) < 1e-9
-    assert np.all(model.body_mass[1:] > 0)
 
 
 def test_inertia_positive_and_triangle(model):
@@ -203,6 +223,26 @@ DE_LEVA = {
     "forearm": (1.62, 45.74, (26.5, 12.1, 27.6), ("left_elbow",), (0, 0.463, 1.42), (0, 0.733, 1.42)),
     "hand": (0.61, 36.24, (23.5, 18.4, 28.8), ("left_wrist", "left_hand"), (0, 0.733, 1.42), (0, 0.922, 1.42)),
 }
+
+
+def test_de_leva_segments_cover_every_body_once(model):
+    """Every body carries exactly one de Leva segment (the bilateral ones mirrored) and the
+    segments' mass fractions sum to 100 %: with test_de_leva_segments_reproduced (each segment
+    has TOTAL_MASS * its fraction), MuJoCo's compiled total mass is the subject's."""
+    owner, total_pct = {}, 0.0
+    for segment, (pct, _, _, bodies, _, _) in DE_LEVA.items():
+        sides = [bodies]
+        if all(b.startswith("left_") for b in bodies):
+            sides.append(tuple(mirror_name(b) for b in bodies))
+        for side in sides:
+            total_pct += pct
+            for b in side:
+                assert b not in owner, (b, segment, owner.get(b))
+                owner[b] = segment
+    assert sorted(owner) == sorted(body_names(model)[1:])
+    assert abs(total_pct - 100.0) < 1e-9
+    assert abs(model.body_subtreemass[0] - TOTAL_MASS) < 1e-9
+    assert np.all(model.body_mass[1:] > 0)
 
 
 @pytest.mark.parametrize("segment", sorted(DE_LEVA))
@@ -237,12 +277,56 @@ def test_every_hinge_limited_with_zero_inside(model):
         assert lo <= 0.0 <= hi and lo < hi, model.joint(j).name
 
 
-def test_specific_ranges(model):
-    lo, hi = model.joint("left_knee_y").range
-    assert lo == 0.0 and 2.2 < hi < 2.5
-    # arms down at the sides reachable (about +-1.5 rad abduction from the T-pose)
-    assert model.joint("left_shoulder_x").range[0] <= -np.pi / 2
-    assert model.joint("right_shoulder_x").range[1] >= np.pi / 2
+# AAOS (1965) normal ranges of motion (degrees; as tabulated in Norkin & White, "Measurement of
+# Joint Motion"), for movements that are a rotation about one hinge axis at the T-pose.  Each
+# movement is identified by its effect, found by forward kinematics: a point (body origin or
+# site) of the left side moving along a world axis (0 x forward, 1 y left, 2 z up) in the
+# given direction; the right side is checked with the y direction mirrored.
+AAOS_1965 = {
+    "hip flexion": ("left_hip_y", "left_knee", 0, +1, 120),
+    "hip extension": ("left_hip_y", "left_knee", 0, -1, 30),
+    "hip abduction": ("left_hip_x", "left_knee", 1, +1, 45),
+    "hip adduction": ("left_hip_x", "left_knee", 1, -1, 30),
+    "hip internal rotation": ("left_hip_z", "left_foot", 1, -1, 45),  # toes turn in
+    "hip external rotation": ("left_hip_z", "left_foot", 1, +1, 45),
+    "knee flexion": ("left_knee_y", "left_ankle", 0, -1, 135),
+    "knee extension": ("left_knee_y", "left_ankle", 0, +1, 0),
+    "ankle dorsiflexion": ("left_ankle_y", "left_foot", 2, +1, 20),
+    "ankle plantarflexion": ("left_ankle_y", "left_foot", 2, -1, 50),
+    "ankle eversion": ("left_ankle_x", "kp_left_small_toe", 2, +1, 15),  # lateral edge up
+    "ankle inversion": ("left_ankle_x", "kp_left_small_toe", 2, -1, 35),
+    "elbow flexion": ("left_elbow_z", "left_wrist", 0, +1, 150),  # palms down: forearm forward
+    "wrist flexion": ("left_wrist_x", "left_hand", 2, -1, 80),  # palms down: fingers down
+    "wrist extension": ("left_wrist_x", "left_hand", 2, +1, 70),
+    "wrist radial deviation": ("left_wrist_z", "left_hand", 0, +1, 20),  # thumb side: forward
+    "wrist ulnar deviation": ("left_wrist_z", "left_hand", 0, -1, 30),
+}
+AAOS_TOL = np.radians(0.01)  # the XML writes radians with 4 decimals
+
+
+def point_position(m, d, name):
+    try:
+        return d.site(name).xpos.copy()
+    except KeyError:
+        return d.body(name).xpos.copy()
+
+
+@pytest.mark.parametrize("movement", sorted(AAOS_1965))
+def test_ranges_are_aaos_normal_motion(model, movement):
+    """The range limit on the side that produces the movement is the AAOS normal value, on both
+    sides of the body; this checks the limits and their signs against anatomy, not the XML."""
+    joint, point, axis, direction, degrees = AAOS_1965[movement]
+    d = mujoco.MjData(model)
+    for side in ("left", "right"):
+        j = joint if side == "left" else mirror_name(joint)
+        p = point if side == "left" else mirror_name(point)
+        want = direction * (-1 if (side == "right" and axis == 1) else 1)
+        rest = point_position(model, pose(model, d), p)
+        moved = point_position(model, pose(model, d, **{j: 0.05}), p) - rest
+        assert abs(moved[axis]) > 1e-3, (j, p)  # the probe moves along the axis
+        lo, hi = model.joint(j).range
+        limit = hi if np.sign(moved[axis]) == want else -lo
+        assert abs(limit - np.radians(degrees)) <= AAOS_TOL, (side, movement, np.degrees(limit))
 
 
 def test_ranges_mirror(model):

@@ -478,5 +478,20 @@ def test_friction_pyramid_gradients(x64):
         assert _all_finite(jf(f, n))
 
 
-def test_module_constants_are_consistent():
-    assert qp.ENUMERATE_DIRECT_MAX_M <= qp.ENUMERATE_MAX_M <= 16
+def test_auto_plan_switches_match_clarabel(x64):
+    """``method="auto"`` changes plan above ENUMERATE_DIRECT_MAX_M (enumeration only -> active
+    set with an enumeration fallback) and above ENUMERATE_MAX_M (-> active set with 8 m fallback
+    steps).  Just above each switch (m = 4, 8, 16 are in test_matches_clarabel), with the default
+    fast path and with the fast path cut to 0 steps (the fallback alone must solve it), the
+    solutions equal Clarabel's and are certified."""
+    rng = np.random.default_rng(12)
+    for m in (qp.ENUMERATE_DIRECT_MAX_M + 1, qp.ENUMERATE_MAX_M + 1):
+        assert m <= 16  # the enumeration fallback's hard limit (2^m subsets)
+        insts = [random_instance(rng, 20, m, feasible_at_v=False) for _ in range(12)]
+        refs = [clarabel_projection(W, G, v, lower)[0] for W, _, G, v, lower in insts]
+        for iters in (None, 0):
+            info = _solve_batch(insts, "auto", iters)
+            assert info.converged.all(), f"m={m} iters={iters}"
+            assert info.active.any(), "the instances must have active constraints"
+            np.testing.assert_allclose(info.x, np.stack(refs), rtol=0, atol=1e-6,
+                                       err_msg=f"m={m} iters={iters}")
