@@ -1,6 +1,7 @@
-"""Batch reconstruction (jmocap.batch, ``jmocap reconstruct``), end to end on tiny archives.
+"""Batch reconstruction (jmocap.batch, jmocap.pipeline, ``jmocap reconstruct``), end to end on
+tiny archives.
 
-The reference for chunking is the whole-clip pipeline, :func:`jmocap.cycle.reconstruct`: a clip
+The reference for chunking is the whole-clip method, ``methods.get_method("physcap").reconstruct``: a clip
 reconstructed in chunks of 8 frames (state carried, 2W - 1 frames of keypoint history) must
 equal it to float32 rounding. Other checks: mixed input formats in one folder (jmocap clips,
 an OpenPose folder with its camera sidecar, broken files), the manifest and summary, finite
@@ -32,41 +33,34 @@ import jax
 import numpy as np
 import pytest
 
+from jmocap import methods
 from jmocap import physics as P
-from jmocap.batch import (
-    DEFAULT_HEIGHT_M,
-    MOTION_FIELDS,
-    RESULT_FORMAT,
-    BatchOptions,
-    assumed_fields,
-    check_clip,
-    check_finite,
-    check_params,
-    chunk_frames,
-    chunk_plan,
-    config_json,
-    history_length,
-    load_run_params,
-    open_sources,
-    params_sha256,
-    reconstruct_archive,
-    scan_folder,
-)
-from jmocap.cycle import (
-    ClipInputs,
-    CycleConfig,
-    default_extrinsics,
-    init_params,
-    reconstruct,
-    target_pose,
-)
+from jmocap.batch import BatchOptions, check_clip, reconstruct_archive
+from jmocap.camera import default_extrinsics
+from jmocap.constants import DEFAULT_HEIGHT_M
 from jmocap.data.clip import FormatError, clip_to_arrays, save_clip
 from jmocap.data.formats import write_openpose_folder, write_videopose3d
+from jmocap.data.sources import open_sources, scan_folder
 from jmocap.data.synthetic import SynthConfig, generate_clip
+from jmocap.inputs import ClipInputs
+from jmocap.methods.physcap import PhysCapConfig, init_params, reconstruct
+from jmocap.methods.stages import target_pose
 from jmocap.model import load_model
 from jmocap.nets import NetConfig
+from jmocap.pipeline import chunk_frames, chunk_plan
+from jmocap.results import MOTION_FIELDS, RESULT_FORMAT, assumed_fields, check_finite
+from jmocap.weights import check_params, load_run_params, params_sha256
 
-SMALL = CycleConfig(
+
+def history_length(config) -> int:
+    return methods.get_method("physcap").history(config)
+
+
+def config_json(config) -> str:
+    return json.dumps(methods.config_dict(config), sort_keys=True)
+
+
+SMALL = PhysCapConfig(
     iterations=2,
     root_residual_limit=None,
     nets=NetConfig(tp_width=16, dyn_width=32, grf_width=32, tp_blocks=2),
@@ -194,7 +188,7 @@ def test_check_finite_names_field_and_frame():
 
 
 def test_config_overrides_and_params_check(tmp_path, params):
-    from jmocap.train import save_params
+    from jmocap.weights import save_params
 
     path = tmp_path / "params.msgpack"
     save_params(path, params)
@@ -204,7 +198,7 @@ def test_config_overrides_and_params_check(tmp_path, params):
     assert c == SMALL and params_sha256(p) == params_sha256(params)
     _, c2 = load_run_params(path, '{"cycle": {"iterations": 3, "nets": {"tp_width": 16}}}')
     assert c2.iterations == 3 and c2.nets.tp_width == 16 and c2.nets.dyn_width == NetConfig().dyn_width
-    with pytest.raises(ValueError, match="unknown CycleConfig fields"):
+    with pytest.raises(ValueError, match="unknown config fields"):
         load_run_params(path, '{"iteration": 3}')
     check_params(p, c)
     with pytest.raises(ValueError, match=r"do not fit the config: \[.dynet.\]"):
@@ -302,7 +296,7 @@ def test_results_follow_the_schema(first_run, clips, params):
         ext = clip.extrinsics if clip.extrinsics is not None else default_extrinsics()
         np.testing.assert_allclose(r["extrinsics"], ext, atol=1e-6)
         height = None if name.startswith("takes/") else clip.height_m  # OpenPose has no height
-        want_h = DEFAULT_HEIGHT_M if height is None else round(height, 2)
+        want_h = DEFAULT_HEIGHT_M if height is None else height
         assert float(r["height_m"]) == pytest.approx(want_h)
         assert float(r["fps"]) == clip.fps
         assert str(r["config"]) == config_json(SMALL)
@@ -321,8 +315,8 @@ def test_chunked_equals_unchunked(first_run, clips, params):
     out, _, _ = first_run
     clip = clips["long"]
     r = np.load(out / "long.npz")
-    model = load_model(height_m=float(r["height_m"]), with_mjx=False)
-    ref = jax.jit(lambda p, m, x: reconstruct(p, m, x, SMALL))(params, model, ClipInputs.from_clip(clip))
+    model = load_model(height_m=clip.height_m, mass_kg=clip.mass_kg)  # the clip's subject, exactly
+    ref = jax.jit(reconstruct)(params, model, ClipInputs.from_clip(clip), SMALL)
     kp3d = jax.vmap(lambda q: P.keypoints(model, q, "body25"))(ref.q)
     want = dict(q=ref.q, qd=ref.qd, tau=ref.tau, grf=ref.grf, contact_prob=ref.contact_prob,
                 target_q=ref.target_q, keypoints3d=kp3d)
@@ -345,7 +339,7 @@ def test_resume_skips_finished_clips_and_redoes_missing_ones(first_run, params, 
     assert s["run"]["ok"] == 1 and s["ok"] == len(GOOD)
     assert read_manifest(out)["medium"]["sha256"] == before["medium"]["sha256"]
     with pytest.raises(ValueError, match="different settings"):  # never mix two configurations
-        reconstruct_archive(input_folder, out, params, dataclasses.replace(SMALL, iterations=3), OPTS)
+        reconstruct_archive(input_folder, out, params, SMALL.replace(iterations=3), OPTS)
 
 
 def test_zip_input_gives_the_same_results(first_run, params, input_folder, tmp_path):
@@ -403,7 +397,7 @@ def test_bvh_per_clip(first_run, params, clips, tmp_path):
 
 
 def cli(tmp_path, params, *extra, cache, env=None):
-    from jmocap.train import save_params
+    from jmocap.weights import save_params
 
     p = tmp_path / "params.msgpack"
     if not p.exists():
@@ -469,7 +463,7 @@ def test_two_devices_shard_the_batch(xla_cache, first_run, params, input_folder,
     for n in GOOD:
         a, b = np.load(out / f"{n}.npz"), np.load(out1 / f"{n}.npz")
         np.testing.assert_allclose(a["q"], b["target_q"], rtol=0, atol=1e-4 * (np.abs(b["target_q"]).max() + 1))
-        assert np.all(a["tau"] == 0) and json.loads(str(a["config"]))["kinematic_only"]
+        assert np.all(a["tau"] == 0) and str(a["method"]) == "kinematic" and not bool(a["forces_estimated"])
 
 
 def test_openpose_folder_as_the_whole_input(xla_cache, first_run, params, clips, tmp_path):

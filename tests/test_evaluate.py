@@ -14,7 +14,8 @@ import pytest
 from jmocap import evaluate as E
 from jmocap import metrics as M
 from jmocap.cli import main
-from jmocap.cycle import CycleConfig
+from jmocap import methods
+from jmocap.methods import PhysCapConfig
 from jmocap.data.archive import ArchiveWriter
 from jmocap.data.synthetic import SynthConfig, generate_clip
 
@@ -34,16 +35,31 @@ def archive(tmp_path_factory, clips):
     return root
 
 
-def test_methods_are_config_changes_of_the_full_pipeline():
-    base = dataclasses.replace(CycleConfig(), use_dynet=False, iterations=3)  # e.g. a trained config
+def test_method_configs_keep_the_trained_fields_and_change_only_their_switch():
+    """Every eval name resolves through the methods registry; a method's config keeps the fields
+    the weights were trained with, and each ablation differs from the full pipeline in exactly
+    the one switch it names."""
+    base = PhysCapConfig(use_dynet=False, iterations=3, mu=0.6)  # e.g. a trained config
     full = E.method_config(base, "physionical")
-    assert full == dataclasses.replace(base, use_dynet=True)  # switches reset, the rest kept
-    assert E.method_config(base, "kinematic") == dataclasses.replace(full, kinematic_only=True)
-    assert E.method_config(base, "fixed_gains") == dataclasses.replace(full, use_dynet=False)
-    assert E.method_config(base, "no_grfnet") == dataclasses.replace(full, use_grfnet=False)
-    assert E.method_config(base, "no_hard_constraint") == dataclasses.replace(full, hard_constraint=False)
-    assert E.method_config(base, "no_canonicalisation") == dataclasses.replace(full, canonicalise=False)
-    assert E.method_config(base, "ground_truth") is None
+    assert (full.iterations, full.mu, full.use_dynet) == (3, 0.6, True)
+    assert E.method_config(base, "physcap") == base  # the weights' own config, unchanged
+    kin = E.method_config(base, "kinematic")
+    assert isinstance(kin, methods.KinematicConfig) and (kin.layout, kin.nets) == (base.layout, base.nets)
+    names = {f.name for f in dataclasses.fields(PhysCapConfig)}
+    switches = {}
+    for name in E.method_names():
+        cfg = E.method_config(base, name)
+        if name == E.GROUND_TRUTH:
+            assert cfg is None
+            continue
+        method, _ = methods.resolve(name)
+        assert isinstance(cfg, method.config_type)
+        if method.name == "physcap" and name not in ("physcap", "physionical"):
+            changed = {f for f in names if getattr(cfg, f) != getattr(full, f)}
+            assert len(changed) == 1, (name, changed)
+            switches[name] = changed.pop()
+    assert switches == {"fixed_gains": "use_dynet", "no_grfnet": "use_grfnet",
+                        "no_hard_constraint": "hard_constraint", "no_canonicalisation": "canonicalise"}
     with pytest.raises(ValueError, match="unknown method 'bogus'"):
         E.method_config(base, "bogus")
 

@@ -20,7 +20,7 @@ import pytest
 import jmocap
 from conftest import random_configurations
 from jmocap.data import FormatError
-from jmocap.export import bvh_joint_positions, load_result, read_bvh, write_bvh
+from jmocap.export import bvh_joint_positions, read_bvh, write_bvh
 
 # documented conventions: BVH (X, Y, Z) = (y, z, x) of the jmocap world (y-up), or unchanged
 TO_BVH = {"y": np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), "z": np.eye(3)}
@@ -179,34 +179,3 @@ def test_read_bvh_rejects_malformed_files(models, tmp_path):
         (tmp_path / name).write_text(text)
         with pytest.raises(FormatError, match=match):
             read_bvh(tmp_path / name)
-
-
-# ---- result files ----------------------------------------------------------------------
-
-
-def test_load_result_tolerates_missing_optional_keys(tmp_path):
-    q = np.zeros((5, 48), np.float32)
-    np.savez(tmp_path / "r.npz", q=q, fps=np.array(30.0), layout=np.array("body25"), extra=np.arange(3))
-    r = load_result(tmp_path / "r.npz")
-    assert r["q"].shape == (5, 48) and r["fps"] == 30.0 and r["layout"] == "body25"
-    for key in ("qd", "tau", "grf", "contact_prob", "keypoints2d", "intrinsics", "height_m", "config"):
-        assert r[key] is None
-    np.testing.assert_array_equal(r["extra"], np.arange(3))
-
-
-def test_load_result_rejects_bad_files(tmp_path):
-    q = np.zeros((5, 48))
-    cases = {
-        "noq.npz": ({"fps": np.array(30.0)}, r"missing field 'q'"),
-        "frames.npz": ({"q": q, "fps": np.array(30.0), "grf": np.zeros((4, 4, 3))}, r"'grf' has 4 frames, 'q' has 5"),
-        "shape.npz": ({"q": q, "fps": np.array(30.0), "grf": np.zeros((5, 3))}, r"'grf' has shape \(5, 3\)"),
-        "fps.npz": ({"q": q, "fps": np.array(-1.0)}, r"'fps' must be positive"),
-    }
-    for name, (arrays, match) in cases.items():
-        np.savez(tmp_path / name, **arrays)
-        with pytest.raises(FormatError, match=match) as e:
-            load_result(tmp_path / name)
-        assert name in str(e.value)
-    (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(FormatError, match="not a readable .npz"):
-        load_result(tmp_path / "junk.npz")

@@ -15,7 +15,7 @@ import pytest
 
 from jmocap import metrics as M
 from jmocap.camera import Camera
-from jmocap.cycle import default_extrinsics
+from jmocap.camera import default_extrinsics
 
 TOL = 1e-3
 

@@ -1,9 +1,9 @@
-"""The physionical pipeline: gradient flow through the dynamic cycle, causality, padding, the
-hard constraint, ablation switches and the closed-form translation."""
+"""The ``physcap`` method (jmocap.methods.physcap) and the stages it composes: gradient flow
+through the dynamic cycle, causality, padding, the hard constraint, what each ablation switch
+changes, the traced config (no recompilation, gradients against finite differences) and the
+closed-form translation."""
 
 from __future__ import annotations
-
-import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -12,23 +12,15 @@ import pytest
 
 from conftest import x64
 from jmocap import physics as P
-from jmocap.camera import Camera, canonicalise, project
-from jmocap.cycle import (
-    ClipInputs,
-    CycleConfig,
-    CycleState,
-    causal_windows,
-    default_extrinsics,
-    init_params,
-    least_squares_translation,
-    reconstruct,
-    simulate,
-    soft_limit_wrench,
-)
+from jmocap import methods
+from jmocap.camera import Camera, canonicalise, default_extrinsics, project
+from jmocap.inputs import ClipInputs
+from jmocap.methods.physcap import CycleState, PhysCapConfig, init_params, reconstruct, simulate
+from jmocap.methods.stages import causal_windows, least_squares_translation, soft_limit_wrench
 from jmocap.model import load_model
 from jmocap.nets import NetConfig
 
-SMALL = CycleConfig(nets=NetConfig(tp_width=16, dyn_width=32, grf_width=32, tp_blocks=2))
+SMALL = PhysCapConfig(nets=NetConfig(tp_width=16, dyn_width=32, grf_width=32, tp_blocks=2))
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +66,7 @@ def test_gradient_flows_through_cycles_projection_and_scan(model):
     With a limited root residual (the option where contact forces move the body); in the default
     literal eqs. 7 + 13 the contact forces cancel and GRFNet gets no gradient from the pose
     (checked at the end), only from L_force."""
-    cfg = dataclasses.replace(SMALL, root_residual_limit=0.5)
+    cfg = SMALL.replace(root_residual_limit=0.5)
     params = perturbed_params(model, cfg, scale=0.01)
     T = 3
     q_hat = jnp.asarray(standing_targets(model, T), jnp.float32)
@@ -103,7 +95,7 @@ def test_cycle_gradient_matches_finite_differences(model):
     """Directional derivative of the final pose w.r.t. DyNet and GRFNet parameters (x64), with a
     limited root residual so that GRFNet moves the body."""
     with x64():
-        cfg = dataclasses.replace(SMALL, root_residual_limit=0.5)
+        cfg = SMALL.replace(root_residual_limit=0.5)
         params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64), perturbed_params(model, cfg, scale=0.01))
         T = 2
         q_hat = jnp.asarray(standing_targets(model, T, sink=0.0))
@@ -138,7 +130,7 @@ def test_reconstruct_is_causal_and_ignores_padding(model):
     params = perturbed_params(model, cfg, scale=0.01)
     T = 10
     inp = synthetic_inputs(model, T)
-    rec = jax.jit(reconstruct, static_argnums=3)
+    rec = jax.jit(reconstruct)
     full = rec(params, model, inp, cfg)
     # changing the last frame's keypoints changes nothing before it
     kp = np.array(inp.keypoints)
@@ -170,8 +162,8 @@ def test_vmap_over_clips_matches_single_clips(model):
         model = load_model(with_mjx=False)  # its arrays made under x64 (no int32/int64 mix)
         params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64), perturbed_params(model, cfg, scale=0.01))
         batch = jax.tree.map(lambda *x: np.stack(x).astype(np.float64) if np.stack(x).dtype == np.float32 else np.stack(x), *clips)
-        out = jax.jit(jax.vmap(reconstruct, in_axes=(None, None, 0, None)), static_argnums=3)(params, model, batch, cfg)
-        rec = jax.jit(reconstruct, static_argnums=3)
+        out = jax.jit(jax.vmap(reconstruct, in_axes=(None, None, 0, None)))(params, model, batch, cfg)
+        rec = jax.jit(reconstruct)
         for i in range(len(clips)):
             single = rec(params, model, jax.tree.map(lambda x, i=i: x[i], batch), cfg)
             np.testing.assert_allclose(out.q[i], single.q, atol=1e-8)
@@ -187,32 +179,90 @@ def test_hard_constraint_prevents_penetration(model):
     init = CycleState(jnp.asarray(standing_targets(model, 1)[0], jnp.float32), jnp.zeros(model.nv), jnp.zeros((4, 3)))
 
     def min_height(cfg):
-        _, out = jax.jit(simulate, static_argnums=6)(params, model, q_hat, prob, jnp.ones(T, bool), 30.0, cfg, init=init)
+        _, out = jax.jit(simulate)(params, model, q_hat, prob, jnp.ones(T, bool), 30.0, cfg, init=init)
         h = jax.vmap(lambda q: P.contact_points(model, q)[1])(out.q)
         return float(jnp.min(h))
 
-    with_c = min_height(dataclasses.replace(SMALL, use_dynet=False, use_grfnet=False))
-    without = min_height(dataclasses.replace(SMALL, use_dynet=False, use_grfnet=False, hard_constraint=False))
+    with_c = min_height(SMALL.replace(use_dynet=False, use_grfnet=False))
+    without = min_height(SMALL.replace(use_dynet=False, use_grfnet=False, hard_constraint=False))
     assert with_c > -1e-3
     assert without < -0.01
 
 
-def test_ablation_switches_run(model):
-    """The switches no other test of this file compiles (use_grfnet / hard_constraint are in
-    test_hard_constraint_prevents_penetration, the root residual limit in the gradient test)."""
+def test_each_switch_changes_what_it_names(model):
+    """Each ablation (and the kinematic method) changes exactly the part of the result it names
+    (use_grfnet / hard_constraint are in test_hard_constraint_prevents_penetration, the root
+    residual limit in the gradient test)."""
     params = perturbed_params(model, SMALL, scale=0.01)
     inp = synthetic_inputs(model, 6)
-    rec = jax.jit(reconstruct, static_argnums=3)
-    for change in (
-        dict(kinematic_only=True),
-        dict(use_dynet=False),
-        dict(canonicalise=False),
-        dict(metric="identity"),
-    ):
-        out = rec(params, model, inp, dataclasses.replace(SMALL, **change))
-        assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(out)), change
-    kin = rec(params, model, inp, dataclasses.replace(SMALL, kinematic_only=True))
+    rec = jax.jit(reconstruct)
+    full = rec(params, model, inp, SMALL)
+    # the kinematic method: TPNet's pose is the result, no forces
+    kin_m = methods.get_method("kinematic")
+    kin = jax.jit(kin_m.reconstruct)(params, model, inp, kin_m.make_config(methods.config_dict(SMALL)))
     np.testing.assert_array_equal(kin.q, kin.target_q)
+    np.testing.assert_array_equal(kin.target_q, full.target_q)  # the same learned stage
+    assert not np.any(np.asarray(kin.tau)) and not np.any(np.asarray(kin.grf))
+    # fixed gains: the same target, a different motion (DyNet's gains are not k_p_ini)
+    fixed = rec(params, model, inp, SMALL.replace(use_dynet=False))
+    np.testing.assert_array_equal(fixed.target_q, full.target_q)
+    assert np.abs(np.asarray(fixed.q[1:]) - np.asarray(full.q[1:])).max() > 1e-5
+    # no canonicalisation: C_T reads K_rr, so the root translation of the target changes, the
+    # root-relative pose (C_P) does not
+    nocano = rec(params, model, inp, SMALL.replace(canonicalise=False))
+    np.testing.assert_array_equal(nocano.target_q[:, 7:], full.target_q[:, 7:])
+    assert np.abs(np.asarray(nocano.target_q[:, :3]) - np.asarray(full.target_q[:, :3])).max() > 1e-3
+    # the identity metric of the projection: finite, the same target
+    ident = rec(params, model, inp, SMALL.replace(metric="identity"))
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(ident))
+    np.testing.assert_array_equal(ident.target_q, full.target_q)
+
+
+def test_traced_parameters_do_not_recompile_static_ones_do(model):
+    """Gains, friction and recovery factors are traced leaves of the config: changing them reuses
+    the compiled program; a static field (iterations) compiles a new one."""
+    cfg = SMALL.replace(use_dynet=False)
+    params = perturbed_params(model, cfg, scale=0.01)
+    T = 3
+    q_hat = jnp.asarray(standing_targets(model, T), jnp.float32)
+    prob = jnp.ones((T, 4))
+    f = jax.jit(lambda c: simulate(params, model, q_hat, prob, jnp.ones(T, bool), 30.0, c)[1].q)
+    a = f(cfg)
+    b = f(cfg.replace(kp_joint=900.0, mu=0.5, beta=0.1, damping_ratio=0.7))
+    assert f._cache_size() == 1
+    assert np.abs(np.asarray(a) - np.asarray(b)).max() > 1e-6  # and they do take effect
+    f(cfg.replace(iterations=2))
+    assert f._cache_size() == 2
+    assert set(methods.traced_fields(PhysCapConfig)) >= {"kp_joint", "kp_root_pos", "mu", "beta", "damping_ratio"}
+    assert "iterations" in methods.static_fields(PhysCapConfig)
+
+
+def test_gradient_with_respect_to_gains_matches_finite_differences(model):
+    """d(loss)/d(k_p, damping) through the cycle (x64) against central differences: the traced
+    config is differentiable (system identification, docs/architecture.md)."""
+    with x64():
+        m64 = load_model()
+        cfg = SMALL.replace(use_dynet=False, use_grfnet=False, iterations=2)
+        params = {}
+        T = 3
+        q_hat = jnp.asarray(standing_targets(m64, T))
+        init = CycleState(q_hat[0].at[7:].add(0.05), jnp.zeros(m64.nv), jnp.zeros((4, 3)))
+
+        def loss(kp, zeta):
+            c = cfg.replace(kp_joint=kp, damping_ratio=zeta)
+            _, out = simulate(params, m64, q_hat, jnp.ones((T, 4)), jnp.ones(T, bool), 30.0, c, init=init)
+            return jnp.sum(jnp.sin(3.0 * out.q[-1]))
+
+        g = jax.jit(jax.grad(loss, argnums=(0, 1)))(1600.0, 1.0)
+        f = jax.jit(loss)
+        for i, eps in enumerate((1e-2, 1e-6)):
+            args_p = [1600.0, 1.0]
+            args_m = [1600.0, 1.0]
+            args_p[i] += eps
+            args_m[i] -= eps
+            fd = (float(f(*args_p)) - float(f(*args_m))) / (2 * eps)
+            assert abs(fd) > 1e-9
+            np.testing.assert_allclose(float(g[i]), fd, rtol=1e-5)
 
 
 def test_least_squares_translation_is_exact_without_noise(model):

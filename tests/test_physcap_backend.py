@@ -1,4 +1,4 @@
-"""CycleConfig.physics_backend: the "mjx" backend (M, h, J_c from MJX's own functions) against
+"""PhysCapConfig.physics_backend: the "mjx" backend (M, h, J_c from MJX's own functions) against
 the default "jmocap" backend (physics.smooth_dynamics), one cycle_step from the same state.
 
 Reference: MJX is an independent implementation of the same MuJoCo quantities, so the two steps
@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from conftest import x64
-from jmocap.cycle import CycleConfig, CycleState, cycle_step, init_params, mjx_smooth_dynamics
+from jmocap.methods.physcap import CycleState, PhysCapConfig, cycle_step, init_params
+from jmocap.methods.stages import mjx_smooth_dynamics
 from jmocap.model import load_model
 from jmocap.physics import smooth_dynamics
 
@@ -42,10 +43,10 @@ def _steps(model, dtype, seed=0):
     params = init_params(jax.random.PRNGKey(seed), model)
     state, q_hat, prob = _state(model, seed, dtype)
     dt = jnp.asarray(1.0 / 180.0, dtype)
-    step = jax.jit(cycle_step, static_argnums=6)
+    step = jax.jit(cycle_step)
     out = {}
     for backend in ("jmocap", "mjx"):
-        cfg = CycleConfig(physics_backend=backend)
+        cfg = PhysCapConfig(physics_backend=backend)
         out[backend] = jax.tree.map(np.asarray, step(params, model, state, q_hat, prob, dt, cfg))
     return out
 
@@ -91,6 +92,6 @@ def test_bad_backend_and_missing_mjx_model():
     state, q_hat, prob = _state(model, 0, jnp.float32)
     params = init_params(jax.random.PRNGKey(0), model)
     with pytest.raises(ValueError, match="with_mjx=True"):
-        cycle_step(params, model, state, q_hat, prob, 1.0 / 180.0, CycleConfig(physics_backend="mjx"))
+        cycle_step(params, model, state, q_hat, prob, 1.0 / 180.0, PhysCapConfig(physics_backend="mjx"))
     with pytest.raises(ValueError, match="physics_backend"):
-        cycle_step(params, model, state, q_hat, prob, 1.0 / 180.0, CycleConfig(physics_backend="mujoco"))
+        cycle_step(params, model, state, q_hat, prob, 1.0 / 180.0, PhysCapConfig(physics_backend="mujoco"))

@@ -17,13 +17,14 @@ import jax
 import numpy as np
 import pytest
 
-from jmocap.cycle import CycleConfig
+from jmocap.methods import PhysCapConfig
 from jmocap.data.clip import save_clip
 from jmocap.data.synthetic import SynthConfig, generate_clip
 from jmocap.nets import NetConfig
-from jmocap.train import StageConfig, TrainConfig, TrainingSet, load_params, train
+from jmocap.train import StageConfig, TrainConfig, TrainingSet, train
+from jmocap.weights import load_params
 
-SMALL = CycleConfig(iterations=2, nets=NetConfig(tp_width=8, dyn_width=16, grf_width=16, tp_blocks=1))
+SMALL = PhysCapConfig(iterations=2, nets=NetConfig(tp_width=8, dyn_width=16, grf_width=16, tp_blocks=1))
 STAGES = (
     StageConfig("tpnet", 3, 1e-3, 2, 4),
     StageConfig("grfnet", 2, 1e-3, 2, 3, cycle={"use_dynet": False}),

@@ -54,6 +54,18 @@ def default_intrinsics(width: float, height: float, focal: float = DEFAULT_FOCAL
     return np.array([focal, focal, width / 2.0, height / 2.0], dtype=np.float64)
 
 
+def default_extrinsics(height: float = 1.0, distance: float = 4.0) -> np.ndarray:
+    """The camera assumed when a clip has no extrinsics: level, at ``(0, -distance, height)``,
+    looking along world +y at ``(0, 0, height)``; OpenCV axes (x right, y down, z forward).
+    Returns the float64 4x4 world -> camera transform."""
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # world -> camera
+    eye = np.array([0.0, -distance, height])
+    E = np.eye(4)
+    E[:3, :3] = R
+    E[:3, 3] = -R @ eye
+    return E
+
+
 @struct.dataclass
 class Camera:
     """A pinhole camera as a JAX pytree (all fields are arrays; batch dims allowed).

@@ -23,6 +23,8 @@ import sys
 import time
 from collections.abc import Callable
 
+from jmocap.progress import Progress
+
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None]]] = {}
 
 
@@ -50,52 +52,6 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jmocap`` script; returns the exit status."""
     args = build_parser().parse_args(argv)
     return int(args.func(args) or 0)
-
-
-# =========================================================================================
-# progress
-# =========================================================================================
-
-
-class Progress:
-    """A small text progress bar on stderr (redrawn at most 5 times a second)."""
-
-    def __init__(self, total: int, label: str = "", enabled: bool = True, stream=None):
-        self.total = max(int(total), 0)
-        self.label = label
-        self.enabled = enabled
-        self.stream = stream or sys.stderr
-        self.n = 0
-        self.frames = 0
-        self.t0 = time.perf_counter()
-        self._last = 0.0
-
-    def update(self, n: int = 1, frames: int = 0) -> None:
-        self.n += n
-        self.frames += frames
-        now = time.perf_counter()
-        if self.enabled and (now - self._last > 0.2 or self.n >= self.total):
-            self._last = now
-            self._draw(now)
-
-    def _draw(self, now: float) -> None:
-        el = now - self.t0
-        frac = self.n / self.total if self.total else 1.0
-        width = 24
-        bar = "#" * int(round(frac * width))
-        fps = self.frames / el if el > 0 else 0.0
-        eta = el / self.n * (self.total - self.n) if self.n else 0.0
-        self.stream.write(
-            f"\r{self.label} {self.n}/{self.total} [{bar:<{width}}] {self.frames} frames "
-            f"{fps:.0f} fr/s {el:.0f}s ETA {eta:.0f}s "
-        )
-        self.stream.flush()
-
-    def close(self) -> None:
-        if self.enabled:
-            self._draw(time.perf_counter())
-            self.stream.write("\n")
-            self.stream.flush()
 
 
 # =========================================================================================
@@ -320,8 +276,7 @@ def _eval(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("archive", help="archive of clips with ground truth (folder, .zip or .tar)")
     p.add_argument("--methods", nargs="+", metavar="METHOD",
-                   help="methods (default: all): kinematic physionical fixed_gains no_grfnet "
-                        "no_hard_constraint no_canonicalisation ground_truth")
+                   help=f"methods and variants (default: all): {_method_list()}, ground_truth")
     p.add_argument("--params", help="parameters (.msgpack); default: the shipped weights")
     p.add_argument("--random-init", action="store_true",
                    help="freshly initialised parameters (seeded): smoke tests of the harness only")
@@ -375,9 +330,11 @@ def _reconstruct(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", help="jmocap archive, or folder / .zip / .tar of clips")
     p.add_argument("output", help="output folder (created; resumed if it exists)")
     p.add_argument("--params", help="parameters (.msgpack); default: the shipped weights")
+    p.add_argument("--method", default=None, metavar="NAME",
+                   help=f"reconstruction method or variant (default {_default_method()}): {_method_list()}")
     p.add_argument("--config", metavar="JSON",
-                   help="CycleConfig fields (JSON text or file) overriding the parameters' config")
-    p.add_argument("--kinematic-only", action="store_true", help="TPNet's target pose only (no dynamics)")
+                   help="config fields of the method (JSON text or file) overriding the parameters' config")
+    p.add_argument("--kinematic-only", action="store_true", help="the same as --method kinematic")
     p.add_argument("--chunk", type=int, default=256, metavar="N", help="frames per chunk (default 256)")
     p.add_argument("--bucket", type=int, default=64, metavar="N",
                    help="a clip's last chunk is padded to a multiple of N frames (default 64)")
@@ -428,9 +385,59 @@ def cmd_reconstruct(args) -> int:
     except ValueError as e:
         print(f"jmocap reconstruct: {e}", file=sys.stderr)
         return 2
-    from jmocap.batch import run_cli
+    return run_reconstruct(args)
 
-    return run_cli(args)
+
+def run_reconstruct(args) -> int:
+    """``jmocap reconstruct``: 0 when every clip has a result, 1 when some failed, 2 on bad
+    arguments."""
+    import jax
+
+    from jmocap.batch import BatchOptions, reconstruct_archive
+    from jmocap.progress import progress_bar
+    from jmocap.weights import check_params, load_run_params
+
+    if args.cache_dir and not jax.config.jax_compilation_cache_dir:
+        jax.config.update("jax_compilation_cache_dir", args.cache_dir)
+    try:
+        if args.kinematic_only and args.method not in (None, "kinematic"):
+            raise ValueError(f"--kinematic-only contradicts --method {args.method}")
+        method = "kinematic" if args.kinematic_only else (args.method or _default_method())
+        params, config = load_run_params(args.params, args.config, method)
+        check_params(params, config, method)
+        options = BatchOptions(
+            chunk=args.chunk, bucket=args.bucket, batch=args.batch, image_size=args.image_size,
+            bvh=args.bvh, max_clips=args.max_clips,
+        )
+        summary = reconstruct_archive(
+            args.input, args.output, params, config, options, method=method,
+            progress=progress_bar("reconstruct", not args.quiet),
+        )
+    except (FileNotFoundError, ValueError, RuntimeError) as e:  # ArchiveError is a ValueError
+        print(f"jmocap reconstruct: {e}", file=sys.stderr)
+        return 2
+    r = summary["run"]
+    print(
+        f"jmocap reconstruct: {summary['ok']}/{summary['clips']} clips ok, {summary['failed']} failed "
+        f"({r['ok']} done and {r['failed']} failed this run, {r['skipped']} already done); "
+        f"{r['frames']} frames in {r['seconds']:.1f} s ({r['clips_per_s'] or 0:.2f} clips/s, "
+        f"{r['frames_per_s'] or 0:.0f} frames/s) -> {args.output}"
+    )
+    for f in summary["failures"][:10]:
+        print(f"  failed: {f['error']}", file=sys.stderr)
+    return 0 if summary["failed"] == 0 and summary["pending"] == 0 else 1
+
+
+def _default_method() -> str:
+    from jmocap.methods import DEFAULT_METHOD
+
+    return DEFAULT_METHOD
+
+
+def _method_list() -> str:
+    from jmocap.methods import method_names
+
+    return ", ".join(method_names())
 
 
 @command("demo", "reconstruct, score and render the sample shipped in the package")

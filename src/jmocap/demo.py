@@ -14,6 +14,8 @@ tracking simulation). The demo
    ``metrics.json``,
 3. renders the walking clip (MP4, front and side views with GRF arrows and contacts, plus the
    input view with the 2D keypoints) and plots its vertical GRF against the ground truth.
+   This step needs the optional ``viz`` extra (``pip install 'jmocap[viz]'``); without it
+   the demo says so and skips the video and the plot (results and metrics are unaffected).
 
 Everything goes into one output folder (default ``demo_out/``); re-running resumes the
 reconstruction and redoes the rest.
@@ -49,21 +51,23 @@ def run_demo(
     log=print,
 ) -> dict[str, Any]:
     """Run the demo into ``out``; returns ``{"summary", "metrics", "files"}``."""
-    from jmocap.batch import BatchOptions, load_run_params, reconstruct_archive
-    from jmocap.cli import Progress
+    from jmocap.batch import BatchOptions, reconstruct_archive
     from jmocap.data.clip import load_clip
-    from jmocap.export import load_result
+    from jmocap.methods import DEFAULT_METHOD
     from jmocap.metrics import METRICS, evaluate_motion
-    from jmocap.model import load_model
+    from jmocap.progress import Progress
+    from jmocap.results import load_result, result_model
+    from jmocap.weights import load_run_params
 
     t0 = time.perf_counter()
     out = Path(out)
     assets = demo_assets()
-    params, config = load_run_params(params_path)
+    params, config = load_run_params(params_path, method=DEFAULT_METHOD)
     log(f"jmocap demo: reconstructing {assets / 'input'} -> {out / 'results'}")
     bar = (lambda n: Progress(n, "reconstruct")) if progress else None
     summary = reconstruct_archive(
-        assets / "input", out / "results", params, config, BatchOptions(bvh=True), progress=bar
+        assets / "input", out / "results", params, config, BatchOptions(bvh=True), method=DEFAULT_METHOD,
+        progress=bar,
     )
     if summary.get("failed"):
         raise RuntimeError(f"demo: {summary['failed']} clip(s) failed, see {out / 'results' / 'manifest.jsonl'}")
@@ -74,7 +78,7 @@ def run_demo(
         clip = load_clip(gt_file)
         r = load_result(out / "results" / f"{clip.name}.npz")
         results[clip.name] = (clip, r)
-        model = load_model(height_m=float(r["height_m"]), with_mjx=False)
+        model = result_model(r)
         rows[clip.name] = {
             "dynamic cycle": evaluate_motion(
                 clip, q=r["q"], grf=r["grf"], tau=r["tau"], contact_prob=r["contact_prob"], model=model
@@ -87,12 +91,20 @@ def run_demo(
     files = [out / "metrics.md", out / "metrics.json"]
 
     if render:
+        from jmocap.viz import VIZ_INSTALL, missing_viz_packages
+
+        missing = missing_viz_packages()
+        if missing:
+            log(f"jmocap demo: video and force plot skipped: they need {', '.join(missing)} "
+                f"(the viz extra: {VIZ_INSTALL})")
+            render = False
+    if render:
         from jmocap.viz import plot_forces, render_result
 
         name = "demo_walk" if "demo_walk" in results else next(iter(results))
         clip, r = results[name]
         log(f"jmocap demo: rendering {name}")
-        model = load_model(height_m=float(r["height_m"]), with_mjx=False)
+        model = result_model(r)
         files += render_result(out / "results" / f"{name}.npz", out / f"{name}.mp4", model=model)
         files.append(
             plot_forces(out / f"{name}_forces.png", r["grf"], r["fps"], gt_grf=clip.gt_grf, tau=r["tau"], model=model)

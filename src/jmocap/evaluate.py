@@ -1,26 +1,28 @@
 """The evaluation harness: run methods over an archive of clips with ground truth and tabulate
 every metric of :mod:`jmocap.metrics` per method (``jmocap eval``).
 
-Methods are the full pipeline, its ablations and two references, each a
-``dataclasses.replace`` of the base :class:`~jmocap.cycle.CycleConfig` (:data:`METHODS`):
+Methods are the registered methods and variants of :mod:`jmocap.methods` (each variant a config
+change of its method, on top of the config the weights were trained with), plus a reference:
 
-=====================  =====================================================================
-``kinematic``          TPNet's target pose alone (``kinematic_only=True``)
-``physionical``        the full pipeline
-``fixed_gains``        no DyNet: PD gains fixed at k_p_ini (``use_dynet=False``, PhysCap-like)
-``no_grfnet``          no contact forces (``use_grfnet=False``)
-``no_hard_constraint`` no foot-floor projection (``hard_constraint=False``)
-``no_canonicalisation`` C_T reads K_rr instead of K_c (``canonicalise=False``); the paper
-                       retrains for this ablation: give it its own weights (``method_params``)
-``ground_truth``       the clip's ground-truth arrays through the same metrics (sanity row)
-=====================  =====================================================================
+=======================  ===================================================================
+``kinematic``            TPNet's target pose alone
+``physcap``              the dynamic cycle with the weights' own config (the shipped default)
+``physionical``          the full pipeline (every stage on, DyNet gains)
+``fixed_gains``          no DyNet: PD gains fixed at k_p_ini (PhysCap-like)
+``no_grfnet``            no contact forces
+``no_hard_constraint``   no foot-floor projection
+``no_canonicalisation``  C_T reads K_rr instead of K_c; the paper retrains for this ablation:
+                         give it its own weights (``method_params``)
+``ground_truth``         the clip's ground-truth arrays through the same metrics (sanity row)
+=======================  ===================================================================
 
-Reconstruction is :func:`jmocap.cycle.reconstruct`, ``vmap``-ed over a batch of clips padded to
-one common length (the frame mask marks real frames) and jitted with the config static, so each
-method compiles once; every clip is reconstructed with the character scaled to its
-``height_m`` (scaled copies share a topology, so they stack into one batched model pytree).
-The result is a deterministic function of the archive, the parameters and the seed (which
-picks the clips when ``max_clips`` is below the archive size).
+Reconstruction is the method's ``reconstruct``, ``vmap``-ed over a batch of clips padded to one
+common length (the frame mask marks real frames) and jitted once per method and config
+structure; every clip is reconstructed with its subject's character
+(:func:`jmocap.pipeline.subject_model`: scaled to the clip's height and mass where it gives
+them; scaled copies share a topology, so they stack into one batched model pytree). The result
+is a deterministic function of the archive, the parameters and the seed (which picks the clips
+when ``max_clips`` is below the archive size).
 
 Per clip, :func:`jmocap.metrics.evaluate_arrays` gives a flat dict; a method's value of a
 metric is the mean over the clips that have it (the max for ``grf_max_pct_bw``): every clip
@@ -30,7 +32,6 @@ counts equally. A clip whose estimate is not finite is recorded as failed and sk
 from __future__ import annotations
 
 import csv
-import dataclasses
 import functools
 import io
 import json
@@ -43,38 +44,39 @@ from typing import Any
 import jax
 import numpy as np
 
+from jmocap import methods as methods_
 from jmocap import metrics as M
-from jmocap.cycle import ClipInputs, CycleConfig, init_params, reconstruct
 from jmocap.data.archive import Archive
 from jmocap.data.clip import Clip
-from jmocap.model import Model, load_model
+from jmocap.inputs import ClipInputs
+from jmocap.io import atomic_write
+from jmocap.model import Model, character
+from jmocap.pipeline import subject_model
 
-# method name -> CycleConfig fields changed from the full pipeline (None: ground truth)
-METHODS: dict[str, dict[str, Any] | None] = {
-    "kinematic": {"kinematic_only": True},
-    "physionical": {},
-    "fixed_gains": {"use_dynet": False},
-    "no_grfnet": {"use_grfnet": False},
-    "no_hard_constraint": {"hard_constraint": False},
-    "no_canonicalisation": {"canonicalise": False},
-    "ground_truth": None,
-}
-FULL_PIPELINE = dict(kinematic_only=False, use_dynet=True, use_grfnet=True, hard_constraint=True,
-                     canonicalise=True)
+#: the reference row: the ground truth through the same metrics
+GROUND_TRUTH = "ground_truth"
 
 
-def method_config(base: CycleConfig, method: str) -> CycleConfig | None:
-    """The config of ``method``: ``base`` with the full pipeline's switches, then the
-    method's change (None for ``ground_truth``)."""
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; known: {', '.join(METHODS)}")
-    change = METHODS[method]
-    return None if change is None else dataclasses.replace(base, **{**FULL_PIPELINE, **change})
+def method_names() -> tuple[str, ...]:
+    """Every name ``jmocap eval --methods`` accepts: registered methods and variants, then
+    ``ground_truth``."""
+    return (*methods_.method_names(), GROUND_TRUTH)
+
+
+def method_config(base, method: str):
+    """The config of ``method`` (a registered method or variant): the fields of ``base`` (the
+    config the weights were trained with; a config object or a flat dict) with the variant's
+    changes; ``None`` for ``ground_truth``."""
+    if method == GROUND_TRUTH:
+        return None
+    m, changes = methods_.resolve(method)
+    fields = base if isinstance(base, dict) else methods_.config_dict(base)
+    return m.make_config(fields, **changes)
 
 
 @dataclass(frozen=True)
 class EvalConfig:
-    methods: tuple[str, ...] = tuple(METHODS)
+    methods: tuple[str, ...] = field(default_factory=method_names)
     batch_size: int = 8
     max_clips: int | None = None
     seed: int = 0
@@ -102,9 +104,11 @@ class EvalResult:
 # ---------------------------------------------------------------------------------------
 
 
-def random_params(seed: int, config: CycleConfig | None = None) -> dict:
-    """Freshly initialised parameters (smoke tests of the harness; not a method)."""
-    return init_params(jax.random.PRNGKey(seed), load_model(with_mjx=False), config or CycleConfig())
+def random_params(seed: int, config=None) -> dict:
+    """Freshly initialised parameters of every network (smoke tests of the harness; not a
+    method): those of ``physcap`` (TPNet, DyNet, GRFNet), which every method's subset of."""
+    m = methods_.get_method("physcap")
+    return m.init_params(jax.random.PRNGKey(seed), character(), config or m.config_type())
 
 
 # ---------------------------------------------------------------------------------------
@@ -121,24 +125,6 @@ def select_clips(archive: str | os.PathLike, max_clips: int | None = None, seed:
             pick = np.sort(np.random.default_rng(seed).choice(len(names), max_clips, replace=False))
             names = [names[i] for i in pick]
         return [a.load(n) for n in names]
-
-
-@functools.lru_cache(maxsize=256)
-def _model(height_m: float | None, mass_kg: float | None) -> Model:
-    if height_m is None and mass_kg is None:
-        return load_model(with_mjx=False)
-    return load_model(height_m=height_m, mass_kg=mass_kg, with_mjx=False)
-
-
-def estimate_model(clip: Clip) -> Model:
-    """The character a clip is reconstructed with: scaled to the clip's height (the mass is the
-    character's own: a video does not tell it)."""
-    return _model(clip.height_m, None)
-
-
-def subject_model(clip: Clip) -> Model:
-    """The subject's character: the clip's height and mass (the ground truth's)."""
-    return _model(clip.height_m, clip.mass_kg)
 
 
 def _stack(trees):
@@ -168,15 +154,16 @@ def _batched_quantities(layout: str) -> Callable:
     return jax.jit(jax.vmap(quantities))
 
 
-@functools.lru_cache(maxsize=1)
-def _batched_reconstruct() -> Callable:
-    return jax.jit(jax.vmap(reconstruct, in_axes=(None, 0, 0, None)), static_argnums=3)
+@functools.lru_cache(maxsize=16)
+def _batched_reconstruct(method: str) -> Callable:
+    """``jit(vmap(reconstruct))`` of a method over clips (the config traced, shared by all)."""
+    return jax.jit(jax.vmap(methods_.get_method(method).reconstruct, in_axes=(None, 0, 0, None)))
 
 
 def _prepare(clips: list[Clip], length: int, size: int) -> _Batch:
     padded = clips + [clips[-1]] * (size - len(clips))
     inputs = _stack([ClipInputs.from_clip(c, length) for c in padded])
-    models = _stack([estimate_model(c) for c in padded])
+    models = _stack([subject_model(c) for c in padded])
     subjects = [subject_model(c) for c in padded]
     fps = np.array([c.fps for c in padded], np.float32)
     layout = padded[0].layout
@@ -191,7 +178,7 @@ def _prepare(clips: list[Clip], length: int, size: int) -> _Batch:
             if getattr(c, fld) is not None:  # the clip's own arrays where it has them
                 g[key] = _pad_edge(getattr(c, fld), length)
         gt.append(g)
-    hw = np.array([M.sole_half_width(estimate_model(c)) for c in padded], np.float32)
+    hw = np.array([M.sole_half_width(m) for m in subjects], np.float32)
     return _Batch(clips, inputs, models, gt, hw)
 
 
@@ -218,17 +205,17 @@ def _ground_truth_pred(gt_i: dict) -> dict:
 def evaluate(
     archive: str | os.PathLike,
     params: dict | None,
-    base: CycleConfig | None = None,
+    base=None,
     config: EvalConfig | None = None,
     *,
-    method_params: dict[str, tuple[dict, CycleConfig]] | None = None,
+    method_params: dict[str, tuple[dict, Any]] | None = None,
     keep_motions: Collection[str] = (),
     clips: Sequence[Clip] | None = None,
 ) -> EvalResult:
     """Run ``config.methods`` over the archive's clips (or ``clips``) and compute every metric.
 
     ``params`` and ``base`` are the shared weights and the config they were trained with
-    (default: ``CycleConfig()``); ``config`` the harness settings (default ``EvalConfig()``);
+    (a config object or flat dict of fields; default: ``PhysCapConfig()``); ``config`` the harness settings (default ``EvalConfig()``);
     ``method_params`` gives a method its own ``(params, config)`` (e.g. ``no_canonicalisation``
     trained without canonicalisation). ``keep_motions`` names clips whose estimated arrays
     (``q``, ``grf``, ``tau``, ``contact_prob``) are kept in ``result.motions[method][clip]``.
@@ -236,7 +223,7 @@ def evaluate(
     """
     from tqdm import tqdm
 
-    base = base or CycleConfig()
+    base = methods_.config_dict(base or methods_.PhysCapConfig()) if not isinstance(base, dict) else base
     config = config or EvalConfig()
     for m in config.methods:
         method_config(base, m)  # validates the name
@@ -251,8 +238,8 @@ def evaluate(
         why = None
         if c.gt_q is None or c.gt_keypoints3d is None:
             why = "no ground truth (gt_q, gt_keypoints3d)"
-        elif c.layout != base.layout:
-            why = f"layout {c.layout!r}, the methods read {base.layout!r}"
+        elif c.layout != base.get("layout", "body25"):
+            why = f"layout {c.layout!r}, the methods read {base.get('layout', 'body25')!r}"
         if why:
             failures.append({"method": "*", "clip": c.name, "error": why})
         else:
@@ -277,7 +264,7 @@ def evaluate(
             raise ValueError(f"method {method!r} needs parameters")
         for batch in batches:
             try:
-                preds = _predict(m_params, batch, cfg)
+                preds = _predict(m_params, batch, method, cfg)
             except Exception as e:  # a batch run records the failure and goes on (DESIGN)
                 failures += [{"method": method, "clip": c.name, "error": f"{type(e).__name__}: {e}"}
                              for c in batch.clips]
@@ -297,9 +284,9 @@ def evaluate(
         "frames": int(sum(c.num_frames for c in usable)),
         "padded_length": length,
         "batch_size": B,
-        "base_config": dataclasses.asdict(base),
+        "base_config": base,
         "method_configs": {m: (None if method_config(base, m) is None else
-                               {k: getattr(method_config(base, m), k) for k in FULL_PIPELINE})
+                               methods_.config_dict(method_config(base, m)))
                            for m in config.methods},
         "own_params": sorted(method_params or {}),
         "seed": config.seed,
@@ -309,7 +296,7 @@ def evaluate(
                       per_clip, failures, motions, info)
 
 
-def _predict(params, batch: _Batch, cfg: CycleConfig | None) -> list[tuple[dict, float, dict]]:
+def _predict(params, batch: _Batch, method: str, cfg) -> list[tuple[dict, float, dict]]:
     """Per real clip of the batch: (the arrays evaluate_arrays reads, the estimate's mass, the
     estimated motion's own arrays)."""
     if cfg is None:  # ground truth through the metrics
@@ -318,7 +305,7 @@ def _predict(params, batch: _Batch, cfg: CycleConfig | None) -> list[tuple[dict,
             pred = _ground_truth_pred(batch.gt[i])
             out.append((pred, c.mass_kg or subject_model(c).total_mass, {}))
         return out
-    motion = _batched_reconstruct()(params, batch.models, batch.inputs, cfg)
+    motion = _batched_reconstruct(methods_.get_method(method).name)(params, batch.models, batch.inputs, cfg)
     # (a non-finite estimate gives non-finite quantities, which evaluate_arrays reports)
     qty = _batched_quantities(batch.clips[0].layout)(batch.models, motion.q, batch.inputs.fps,
                                                    batch.half_width)
@@ -327,12 +314,12 @@ def _predict(params, batch: _Batch, cfg: CycleConfig | None) -> list[tuple[dict,
     for i, clip in enumerate(batch.clips):
         pred = {k: v[i] for k, v in qty.items()}
         pred["contact_prob"] = motion.contact_prob[i]
-        if not cfg.kinematic_only:  # the kinematic pipeline estimates no forces
+        if methods_.get_method(method).estimates_forces:  # the kinematic method estimates none
             pred["grf"] = motion.grf[i]
             pred["tau"] = motion.tau[i]
         own = {"q": motion.q[i], "grf": motion.grf[i], "tau": motion.tau[i],
                "contact_prob": motion.contact_prob[i], "keypoints3d": pred["keypoints3d"]}
-        out.append((pred, estimate_model(clip).total_mass, own))
+        out.append((pred, subject_model(clip).total_mass, own))
     return out
 
 
@@ -425,20 +412,14 @@ def result_json(result: EvalResult) -> dict:
     }
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    from jmocap.data.archive import _atomic_write as write
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write(path, text.encode())
-
-
 def write_outputs(result: EvalResult, out: str | os.PathLike, title: str = "jmocap evaluation") -> list[Path]:
     """``out/metrics.md``, ``out/metrics.csv``, ``out/metrics.json`` (each written atomically)."""
     out = Path(out)
     files = [(out / "metrics.md", markdown_report(result, title)), (out / "metrics.csv", csv_table(result)),
              (out / "metrics.json", json.dumps(result_json(result), indent=1, sort_keys=False) + "\n")]
     for path, text in files:
-        _atomic_write(path, text)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, text)
     return [p for p, _ in files]
 
 
@@ -447,38 +428,38 @@ def write_outputs(result: EvalResult, out: str | os.PathLike, title: str = "jmoc
 # ---------------------------------------------------------------------------------------
 
 
-def resolve_params(args) -> tuple[dict, CycleConfig, str]:
+def resolve_params(args) -> tuple[dict, Any, str]:
     """(params, config, description) from --params / --random-init / the shipped weights
-    (:func:`jmocap.batch.load_run_params`)."""
-    from jmocap.batch import load_run_params
+    (:func:`jmocap.weights.load_run_params`)."""
+    from jmocap.weights import load_run_params
 
     if args.params and args.random_init:
         raise ValueError("--params and --random-init exclude each other")
     if args.random_init:
-        return random_params(args.seed), CycleConfig(), f"random init (seed {args.seed})"
-    params, cfg = load_run_params(args.params)  # a run's config.json next to the file, if any
+        return random_params(args.seed), methods_.PhysCapConfig(), f"random init (seed {args.seed})"
+    params, cfg = load_run_params(args.params, method="physcap")  # a run's config.json next to the file, if any
     return params, cfg, str(args.params) if args.params else "shipped default weights"
 
 
 def cmd_eval(args) -> int:
     import sys
 
-    from jmocap.batch import load_run_params
     from jmocap.data.archive import ArchiveError
+    from jmocap.weights import load_run_params
 
     try:
-        methods = tuple(m for item in (args.methods or METHODS) for m in item.split(",") if m)
+        methods = tuple(m for item in (args.methods or method_names()) for m in item.split(",") if m)
         for m in methods:
-            method_config(CycleConfig(), m)
+            method_config({}, m)
         if args.max_clips is not None and args.max_clips < 1:
             raise ValueError("--max-clips must be >= 1")
         params, base, source = resolve_params(args)
         own = {}
         for item in args.method_params:
             name, _, path = item.partition("=")
-            if name not in METHODS or not path:
+            if name not in method_names() or name == GROUND_TRUTH or not path:
                 raise ValueError(f"--method-params expects METHOD=PATH with a known method, got {item!r}")
-            own[name] = load_run_params(path)
+            own[name] = load_run_params(path, method="physcap")
         cfg = EvalConfig(methods, args.batch_size, args.max_clips, args.seed, not args.quiet)
         result = evaluate(args.archive, params, base, cfg, method_params=own)
     except (ValueError, FileNotFoundError, ArchiveError) as e:
@@ -492,8 +473,7 @@ def cmd_eval(args) -> int:
 
 
 __all__ = [
-    "FULL_PIPELINE",
-    "METHODS",
+    "GROUND_TRUTH",
     "EvalConfig",
     "EvalResult",
     "aggregate",
@@ -503,6 +483,7 @@ __all__ = [
     "markdown_report",
     "markdown_table",
     "method_config",
+    "method_names",
     "random_params",
     "result_json",
     "select_clips",

@@ -1,7 +1,7 @@
 """Exports of a reconstruction: result files in, Biovision hierarchy (BVH) motion out.
 
-* :func:`load_result` reads a per-clip result ``.npz`` (written by the batch reconstruction)
-  into a dict of arrays, tolerant of missing optional keys.
+(Result files are read with :func:`jmocap.results.load_result`.)
+
 * :func:`write_bvh` writes a motion ``q`` (T, nq) of a jmocap character as BVH: one BVH joint
   per MuJoCo body, offsets from the model's ``body_pos`` (so a model scaled to a subject's
   height exports its own skeleton), the root's position and orientation, and every hinge
@@ -47,104 +47,17 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from jmocap.data.archive import _atomic_write
 from jmocap.data.clip import FormatError
+from jmocap.io import atomic_write
 from jmocap.model import Model
 
 __all__ = [
     "Bvh",
     "bvh_joint_positions",
     "check_q",
-    "load_result",
     "read_bvh",
     "write_bvh",
 ]
-
-# ======================================================================================
-# result files
-# ======================================================================================
-
-# key -> (trailing shape, None = any size); time series have a leading T
-_RESULT_SERIES = {
-    "q": (None,),
-    "qd": (None,),
-    "tau": (None,),
-    "grf": (4, 3),
-    "contact_prob": (4,),
-    "keypoints3d": (None, 3),
-    "keypoints2d": (None, 3),
-}
-_RESULT_STATIC = {"intrinsics": (4,), "image_size": (2,), "extrinsics": (4, 4)}
-_RESULT_SCALARS = ("fps", "height_m", "mass_kg")
-_RESULT_STRINGS = ("layout", "version", "config")
-
-
-def load_result(path: str | os.PathLike) -> dict[str, Any]:
-    """Read a reconstruction result ``.npz`` into a dict.
-
-    Required: ``q`` (T, nq) and ``fps`` (> 0). Every other known key (``qd``, ``tau``,
-    ``grf``, ``contact_prob``, ``keypoints3d``, ``keypoints2d``, ``intrinsics``,
-    ``image_size``, ``extrinsics``, ``height_m``, ``mass_kg``, ``layout``, ``version``,
-    ``config``) is present in the dict, as ``None`` when the file lacks it. Shapes are checked
-    (time series must share T); numeric scalars become ``float``, 0-d strings ``str``; unknown
-    extra keys are passed through as arrays. Raises :class:`jmocap.data.FormatError` (a
-    ``ValueError``) naming the file and field.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"result file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {k: npz[k] for k in npz.files}
-    except Exception as e:  # not a zip, truncated, pickled objects, ...
-        raise FormatError(f"{path}: not a readable .npz result file ({type(e).__name__}: {e})") from None
-
-    out: dict[str, Any] = {k: None for k in (*_RESULT_SERIES, *_RESULT_STATIC, *_RESULT_SCALARS, *_RESULT_STRINGS)}
-    for key in ("q", "fps"):
-        if key not in data:
-            raise FormatError(f"{path}: missing field {key!r}")
-    T = None
-    for key, trailing in _RESULT_SERIES.items():
-        if key not in data:
-            continue
-        a = data[key]
-        if a.dtype.kind not in "fiu" or a.ndim != 1 + len(trailing) or any(
-            n is not None and s != n for s, n in zip(a.shape[1:], trailing, strict=True)
-        ):
-            want = "(T, " + ", ".join("*" if n is None else str(n) for n in trailing) + ")"
-            raise FormatError(f"{path}: field {key!r} has shape {a.shape} ({a.dtype}), expected {want} numbers")
-        if T is None:
-            T = a.shape[0]
-        elif a.shape[0] != T:
-            raise FormatError(f"{path}: field {key!r} has {a.shape[0]} frames, 'q' has {T}")
-        out[key] = a
-    if T == 0:
-        raise FormatError(f"{path}: field 'q' has no frames")
-    for key, shape in _RESULT_STATIC.items():
-        if key in data:
-            a = data[key]
-            if a.shape != shape or a.dtype.kind not in "fiu":
-                raise FormatError(f"{path}: field {key!r} has shape {a.shape} ({a.dtype}), expected {shape} numbers")
-            out[key] = a
-    for key in _RESULT_SCALARS:
-        if key in data:
-            a = data[key]
-            if a.shape != () or a.dtype.kind not in "fiu":
-                raise FormatError(f"{path}: field {key!r} must be a number, got shape {a.shape} ({a.dtype})")
-            out[key] = float(a)
-    if not (math.isfinite(out["fps"]) and out["fps"] > 0):
-        raise FormatError(f"{path}: field 'fps' must be positive, got {out['fps']}")
-    for key in _RESULT_STRINGS:
-        if key in data:
-            a = data[key]
-            if a.shape != () or a.dtype.kind not in "US":
-                raise FormatError(f"{path}: field {key!r} must be a string, got shape {a.shape} ({a.dtype})")
-            out[key] = str(a)
-    for key, a in data.items():
-        if key not in out:
-            out[key] = a
-    return out
-
 
 # ======================================================================================
 # validation
@@ -413,7 +326,7 @@ def write_bvh(
     text = [_hierarchy_text(joints, decimals), "MOTION\n", f"Frames: {len(q)}\n", f"Frame Time: {1.0 / fps:.8f}\n"]
     text += [fmt % tuple(row) for row in motion]
     path.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_write(path, "".join(text).encode("ascii"))
+    atomic_write(path, "".join(text).encode("ascii"))
     return path
 
 

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from jmocap.constants import CONTACT_SITES as _CONTACT_SITES
+
 
 @dataclass(frozen=True)
 class Layout:
@@ -138,14 +140,8 @@ H36M17 = _layout(
 
 LAYOUTS: dict[str, Layout] = {layout.name: layout for layout in (BODY25, COCO17, H36M17)}
 
-# The four foot contact points, in the order used everywhere in jmocap (contact labels,
-# contact Jacobian rows, GRF vectors): left heel, left toe, right heel, right toe.
-CONTACT_SITES: tuple[str, ...] = (
-    "contact_left_heel",
-    "contact_left_toe",
-    "contact_right_heel",
-    "contact_right_toe",
-)
+# The four foot contact points (named once in jmocap.constants), re-exported here.
+CONTACT_SITES = _CONTACT_SITES
 
 
 def get_layout(layout: str | Layout) -> Layout:

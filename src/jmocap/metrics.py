@@ -38,15 +38,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jmocap import physics as P
-from jmocap.camera import Camera, project
-from jmocap.model import Model
+from jmocap.camera import Camera, default_extrinsics, project
+from jmocap.constants import GRAVITY  # the body weight is mass * GRAVITY
+from jmocap.model import Model, character
 from jmocap.numerics import safe_div, safe_normalize
 from jmocap.physics.linalg import det3
 from jmocap.physics.rotations import quat_to_mat
 
 Array = jnp.ndarray
 
-GRAVITY = 9.81  # m/s^2, the body weight is mass * GRAVITY (the model's gravity is -9.81 z)
 PCK_THRESHOLD_MM = 150.0
 AUC_MAX_MM = 150.0
 AUC_STEPS = 31  # thresholds 0, 5, ..., 150 mm
@@ -532,9 +532,7 @@ def zmp_from_wrench(force: Array, torque: Array, origin: Array) -> Array:
 def _difference_velocities(model: Model, q: Array, fps) -> tuple[Array, Array]:
     """Central-difference velocity and acceleration (T, nv) of a pose sequence (edge frames
     replicate a neighbour's difference: mask them, see :func:`_central_mask`)."""
-    from jmocap.cycle import finite_difference_velocity
-
-    back = finite_difference_velocity(model, q, fps)  # (q_t - q_{t-1}) fps, row 0 zero
+    back = P.finite_difference_velocity(model, q, fps)  # (q_t - q_{t-1}) fps, row 0 zero
     fwd = jnp.concatenate([back[1:], back[-1:]], 0)  # (q_{t+1} - q_t) fps
     return 0.5 * (back + fwd), (fwd - back) * jnp.asarray(fps, q.dtype)
 
@@ -895,12 +893,12 @@ _quantities = jax.jit(motion_quantities, static_argnames="layout")
 
 
 def clip_camera(clip) -> Camera:
-    """The input camera of a :class:`~jmocap.data.clip.Clip` (the pipeline's default extrinsics
-    when the clip has none, as :class:`jmocap.cycle.ClipInputs` assumes)."""
-    from jmocap.cycle import ClipInputs
-
-    inp = ClipInputs.from_clip(clip)
-    return Camera(jnp.asarray(inp.intrinsics), jnp.asarray(inp.image_size), jnp.asarray(inp.extrinsics))
+    """The input camera of a :class:`~jmocap.data.clip.Clip` (the default extrinsics,
+    :func:`jmocap.camera.default_extrinsics`, when the clip has none, as the methods assume)."""
+    ext = clip.extrinsics if clip.extrinsics is not None else default_extrinsics()
+    f32 = np.float32
+    return Camera(jnp.asarray(np.asarray(clip.intrinsics, f32)), jnp.asarray(np.asarray(clip.image_size, f32)),
+                  jnp.asarray(np.asarray(ext, f32)))
 
 
 def clip_ground_truth(clip, gt_model: Model | None = None) -> tuple[dict[str, Array], float | None]:
@@ -908,13 +906,11 @@ def clip_ground_truth(clip, gt_model: Model | None = None) -> tuple[dict[str, Ar
 
     Quantities that need the physics (feet, ZMP, ...) come from ``gt_q`` on ``gt_model``
     (default: the character scaled to the clip's height and mass)."""
-    from jmocap.model import load_model
-
     gt: dict[str, Any] = dict(keypoints3d=clip.gt_keypoints3d, grf=clip.gt_grf, tau=clip.gt_tau,
                               contacts=clip.gt_contacts)
     mass = clip.mass_kg
     if clip.gt_q is not None:
-        gt_model = gt_model or load_model(height_m=clip.height_m, mass_kg=clip.mass_kg, with_mjx=False)
+        gt_model = gt_model or character(clip.height_m, clip.mass_kg)
         mass = mass or gt_model.total_mass
         qty = _quantities(gt_model, jnp.asarray(clip.gt_q), clip.fps, clip.layout, sole_half_width(gt_model))
         gt = {**qty, **{k: v for k, v in gt.items() if v is not None}}
@@ -943,12 +939,10 @@ def evaluate_motion(
     ``contact_prob`` (T, 4). A :class:`~jmocap.motion.Motion` gives them all:
     ``evaluate_motion(clip, q=m.q, grf=m.grf, tau=m.tau, contact_prob=m.contact_prob, model=...)``.
     """
-    from jmocap.model import load_model
-
     pred: dict[str, Any] = dict(grf=grf, tau=tau, contact_prob=contact_prob)
     pred_mass = None
     if q is not None:
-        model = model or load_model(height_m=clip.height_m, with_mjx=False)
+        model = model or character(clip.height_m, clip.mass_kg)
         q = _points(q, "q", f"T, {model.nq}")
         if q.shape[0] != clip.num_frames:
             raise ValueError(f"q has {q.shape[0]} frames, clip {clip.name!r} has {clip.num_frames}")

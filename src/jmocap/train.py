@@ -36,19 +36,15 @@ from flax import serialization
 from jmocap import losses as Lo
 from jmocap import physics as P
 from jmocap.camera import Camera, project
-from jmocap.cycle import (
-    ClipInputs,
-    CycleConfig,
-    CycleState,
-    body_mass,
-    init_params,
-    pd_error,
-    simulate,
-    target_pose,
-)
+from jmocap.constants import FLOOR_NORMAL, NUM_CONTACTS
+from jmocap.inputs import ClipInputs
+from jmocap.io import atomic_write
 from jmocap.layouts import get_layout
-from jmocap.model import Model, load_model
+from jmocap.methods.physcap import CycleState, PhysCapConfig, init_params, simulate
+from jmocap.methods.stages import body_weight, contact_probability, pd_error, target_pose
+from jmocap.model import Model, character
 from jmocap.physics.rotations import quat_to_mat
+from jmocap.weights import load_params, save_params
 
 NETS = ("tpnet", "dynet", "grfnet")
 STAGE_TRAINS = {
@@ -67,7 +63,7 @@ class StageConfig:
     lr: float
     batch: int
     frames: int  # window length in frames
-    # CycleConfig fields changed for this stage only (e.g. {"use_dynet": false}: train GRFNet
+    # PhysCapConfig fields changed for this stage only (e.g. {"use_dynet": false}: train GRFNet
     # under the fixed-gain PD that the shipped config runs)
     cycle: dict = field(default_factory=dict)
 
@@ -83,15 +79,14 @@ class TrainConfig:
         StageConfig("grfnet", 300, 3e-4, 8, 6),
         StageConfig("joint", 200, 1e-4, 8, 6),
     )
-    cycle: CycleConfig = field(default_factory=CycleConfig)
+    cycle: PhysCapConfig = field(default_factory=PhysCapConfig)
     max_clips: int | None = None
-    height_bucket_m: float = 0.05  # subjects are simulated with models scaled to this grid
     log_every: int = 20
     checkpoint_every: int = 200
     clip_grad_norm: float = 1.0
     # truncated backpropagation through time: gradients stop at the state entering each frame
     truncate_gradient: bool = True
-    # CycleConfig fields changed in the config shipped with the weights (inference only)
+    # PhysCapConfig fields changed in the config shipped with the weights (inference only)
     ship_cycle: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -107,9 +102,12 @@ class TrainConfig:
         if "stages" in d:
             d["stages"] = tuple(StageConfig(**s) for s in d["stages"])
         if "cycle" in d:
-            from jmocap.weights import cycle_config_from_json
+            from jmocap.methods import get_method
 
-            d["cycle"] = cycle_config_from_json(d["cycle"])
+            d["cycle"] = get_method("physcap").make_config(d["cycle"])
+        # older configs scaled subjects to a height grid; every subject now gets its exact
+        # character (jmocap.model.character), the same as reconstruction and evaluation
+        d.pop("height_bucket_m", None)
         return TrainConfig(**d)
 
 
@@ -120,7 +118,8 @@ class TrainConfig:
 
 @dataclass
 class TrainingSet:
-    """Clips of an archive held as numpy arrays, plus one scaled model per height bucket."""
+    """Clips of an archive held as numpy arrays, plus one character per subject (exact height
+    and mass, :func:`jmocap.model.character`)."""
 
     clips: list[dict]
     models: list[Model]
@@ -136,7 +135,7 @@ class TrainingSet:
         if not files:
             raise FileNotFoundError(f"no clip .npz files in {path}")
         layout = get_layout(config.cycle.layout)
-        buckets: dict[float, int] = {}
+        buckets: dict[tuple, int] = {}
         models: list[Model] = []
         clips = []
         for f in files:
@@ -145,13 +144,12 @@ class TrainingSet:
                 raise ValueError(f"{f}: layout {c.layout!r}, training expects {layout.name!r}")
             if c.gt_q is None or c.gt_keypoints3d is None or c.gt_contacts is None:
                 raise ValueError(f"{f}: training needs gt_q, gt_keypoints3d and gt_contacts")
-            h = c.height_m or 1.75
-            key = round(round(h / config.height_bucket_m) * config.height_bucket_m, 3)
+            key = (c.height_m, c.mass_kg)
             if key not in buckets:
                 buckets[key] = len(models)
-                models.append(load_model(height_m=key, with_mjx=False))
+                models.append(character(*key))
             inputs = ClipInputs.from_clip(c)
-            clean = _project_np(c.intrinsics, inputs.extrinsics, c.gt_keypoints3d)
+            clean = np.asarray(project(inputs.camera, np.asarray(c.gt_keypoints3d, np.float32)))
             clips.append(
                 dict(
                     name=c.name,
@@ -192,12 +190,6 @@ class TrainingSet:
         return model, data
 
 
-def _project_np(intrinsics, extrinsics, X):
-    Xc = X @ extrinsics[:3, :3].T + extrinsics[:3, 3]
-    z = np.maximum(Xc[..., 2:3], 1e-6)
-    return Xc[..., :2] / z * intrinsics[:2] + intrinsics[2:4]
-
-
 # ---------------------------------------------------------------------------------------
 # losses per sample
 # ---------------------------------------------------------------------------------------
@@ -207,7 +199,7 @@ def _inputs(d) -> ClipInputs:
     return ClipInputs(d["keypoints"], d["intrinsics"], d["image_size"], d["extrinsics"], d["fps"], d["mask"])
 
 
-def tpnet_losses(params, model, d, key, config: CycleConfig, detach: bool):
+def tpnet_losses(params, model, d, key, config: PhysCapConfig, detach: bool):
     layout = get_layout(config.layout)
     mask = d["mask"]
     tp = target_pose(params, model, _inputs(d), config, train=True, rngs={"dropout": key}, detach_pose=detach)
@@ -230,21 +222,21 @@ def tpnet_losses(params, model, d, key, config: CycleConfig, detach: bool):
     }
 
 
-def cycle_losses(params, model, d, tp, config: CycleConfig, truncate: bool = False):
+def cycle_losses(params, model, d, tp, config: PhysCapConfig, truncate: bool = False):
     mask = d["mask"]
     q_hat = tp.q_hat
-    prob = jax.nn.sigmoid(tp.contact_logits)
+    prob = contact_probability(tp.contact_logits)
     dtype = q_hat.dtype
-    init = CycleState(d["gt_q"][0], d["gt_qd"][0], jnp.zeros((4, 3), dtype))
+    init = CycleState(d["gt_q"][0], d["gt_qd"][0], jnp.zeros((NUM_CONTACTS, 3), dtype))
     _, out = simulate(params, model, q_hat, prob, mask, d["fps"], config, init=init, truncate_gradient=truncate)
     e = jax.vmap(lambda a, b: pd_error(model, a, b))(q_hat, out.q)
     steps = out.steps  # (T, k, ...)
     k = config.iterations
     step_mask = jnp.repeat(mask, k)
     flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), steps)
-    grf_prev = jnp.concatenate([jnp.zeros((1, 4, 3), dtype), flat.grf[:-1]])
-    weight = body_mass(model, dtype) * 9.81
-    normal = jnp.array([0.0, 0.0, 1.0], dtype)
+    grf_prev = jnp.concatenate([jnp.zeros((1, NUM_CONTACTS, 3), dtype), flat.grf[:-1]])
+    weight = body_weight(model, dtype)
+    normal = jnp.array(FLOOR_NORMAL, dtype)
     layout = get_layout(config.layout)
     kp = jax.vmap(lambda q: P.keypoints(model, q, layout))(out.q)
     return {
@@ -266,7 +258,7 @@ STAGE_WEIGHTS = {
 }
 
 
-def stage_loss(params, model, d, key, stage: str, config: CycleConfig, truncate: bool = False):
+def stage_loss(params, model, d, key, stage: str, config: PhysCapConfig, truncate: bool = False):
     """Weighted loss of one sample for a stage, and its named terms."""
     if stage == "finetune2d":  # 2D only: the detector keypoints are the pseudo ground truth
         d = dict(d, gt_2d=d["keypoints"][..., :2])
@@ -280,7 +272,7 @@ def stage_loss(params, model, d, key, stage: str, config: CycleConfig, truncate:
     return total, terms
 
 
-def make_step(stage: StageConfig, config: CycleConfig, optimizer, truncate: bool = True):
+def make_step(stage: StageConfig, config: PhysCapConfig, optimizer, truncate: bool = True):
     def batch_loss(params, model, data, key):
         keys = jax.random.split(key, data["mask"].shape[0])
         total, terms = jax.vmap(
@@ -314,26 +306,6 @@ def make_optimizer(stage: StageConfig, params, clip: float):
 # ---------------------------------------------------------------------------------------
 # checkpoints and the loop
 # ---------------------------------------------------------------------------------------
-
-
-def save_params(path: str | os.PathLike, params) -> None:
-    """Write parameters (msgpack, float32) atomically."""
-    _atomic_write(Path(path), serialization.msgpack_serialize(jax.tree.map(np.asarray, params)))
-
-
-def load_params(path: str | os.PathLike):
-    """Read parameters written by :func:`save_params` (a nested dict of numpy arrays)."""
-    return serialization.msgpack_restore(Path(path).read_bytes())
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | None = None) -> dict:
@@ -412,4 +384,4 @@ def _save_checkpoint(path: Path, stage_step, params, opt_state, key, rng=None) -
         "opt_state": None if opt_state is None else serialization.to_state_dict(jax.tree.map(np.asarray, opt_state)),
         "key": np.asarray(key),
     }
-    _atomic_write(path, serialization.msgpack_serialize(payload))
+    atomic_write(path, serialization.msgpack_serialize(payload))

@@ -20,6 +20,11 @@ EGL (then OSMesa) context class for the renderer it creates, unless ``MUJOCO_GL`
 backend (the user's choice, e.g. ``glfw`` on a desktop). It raises :class:`RenderError` naming
 the system packages to install when nothing works. (The in-process fall-back to OSMesa is best
 effort; on a machine without EGL set ``MUJOCO_GL=osmesa``.)
+
+The plotting and video packages (matplotlib, imageio, imageio-ffmpeg) are the ``viz`` extra,
+not core dependencies: they are imported where they are used, and a missing one raises an
+``ImportError`` saying ``pip install 'jmocap[viz]'`` (:func:`missing_viz_packages` checks
+without importing).
 """
 
 from __future__ import annotations
@@ -31,8 +36,9 @@ if "mujoco" not in sys.modules:  # MuJoCo reads MUJOCO_GL once, at import
     os.environ.setdefault("MUJOCO_GL", "egl")
 
 import copy  # noqa: E402
+import importlib  # noqa: E402
+import importlib.util  # noqa: E402
 import math  # noqa: E402
-import tempfile  # noqa: E402
 import warnings  # noqa: E402
 from collections.abc import Iterator, Sequence  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -40,9 +46,11 @@ from pathlib import Path  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jmocap.export import check_q, load_result  # noqa: E402
+from jmocap.export import check_q  # noqa: E402
+from jmocap.io import atomic_path  # noqa: E402
 from jmocap.layouts import Layout, get_layout  # noqa: E402
 from jmocap.model import Model  # noqa: E402
+from jmocap.results import load_result  # noqa: E402
 
 __all__ = [
     "RenderError",
@@ -65,6 +73,39 @@ _SYSTEM_PACKAGES = "EGL: libegl1 + libgl1-mesa-dri (Mesa); OSMesa: libosmesa6 (D
 
 class RenderError(RuntimeError):
     """No OpenGL context could be created for offscreen rendering."""
+
+
+# ======================================================================================
+# the optional packages of the `viz` extra
+# ======================================================================================
+
+VIZ_PACKAGES = ("matplotlib", "imageio", "imageio_ffmpeg")  # import names
+VIZ_INSTALL = "pip install 'jmocap[viz]'"
+
+
+def missing_viz_packages() -> list[str]:
+    """The packages of the ``viz`` extra that are not installed (import names), without importing them."""
+    return [name for name in VIZ_PACKAGES if importlib.util.find_spec(name) is None]
+
+
+def _import_viz(module: str, what: str):
+    """Import ``module`` (of a ``viz`` extra package) for ``what``, or say how to install it."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as e:
+        raise ImportError(
+            f"{what} needs {e.name or module}, which is not installed; video and plots are the "
+            f"optional viz extra: {VIZ_INSTALL}"
+        ) from e
+
+
+def _require_viz(what: str) -> None:
+    missing = missing_viz_packages()
+    if missing:
+        raise ImportError(
+            f"{what} needs {', '.join(missing)}, not installed; video and plots are the optional "
+            f"viz extra: {VIZ_INSTALL}"
+        )
 
 
 # ======================================================================================
@@ -509,12 +550,6 @@ def render_frames(
     return frames()
 
 
-def _temp_path(path: Path) -> Path:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    return Path(tmp)
-
-
 def render(
     path: str | os.PathLike,
     model: Model,
@@ -550,24 +585,17 @@ def render(
         views=views, size=size, force_scale=force_scale, quality=quality, fps=fps,
     )
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _temp_path(path)
-    try:
+    with atomic_path(path) as tmp:
         if ext == ".gif":
-            import imageio.v3 as iio
-
+            iio = _import_viz("imageio.v3", "render(): GIF output")
             iio.imwrite(tmp, np.stack(list(frames)), extension=".gif", duration=1000.0 / fps, loop=0)
         else:
             _write_mp4(tmp, frames, fps)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
 
 
 def _write_mp4(path: Path, frames: Iterator[np.ndarray], fps: float) -> None:
-    import imageio_ffmpeg
-
+    imageio_ffmpeg = _import_viz("imageio_ffmpeg", "render(): MP4 output")
     writer = None
     try:
         for frame in frames:
@@ -615,9 +643,8 @@ def plot_forces(
     hinge torques of ``joints`` (default knee and ankle flexion) in N m, and the magnitude of
     the residual root force ``|tau[:3]|`` in body weights. Written atomically. Returns the path.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
+    FigureCanvasAgg = _import_viz("matplotlib.backends.backend_agg", "plot_forces()").FigureCanvasAgg
+    Figure = _import_viz("matplotlib.figure", "plot_forces()").Figure
     path = Path(path)
     where = f"plot_forces({path})"
     fps = float(fps)
@@ -687,13 +714,8 @@ def plot_forces(
     axes[-1].set_xlabel("time (s)")
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _temp_path(path)
-    try:
+    with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
 
 
@@ -728,6 +750,7 @@ def render_result(
     to the result's ``height_m`` / ``mass_kg``. Returns the written paths."""
     import jmocap
 
+    _require_viz("render_result() (jmocap render)")
     result_path = Path(result_path)
     r = load_result(result_path)
     if model is None:

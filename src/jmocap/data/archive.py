@@ -35,7 +35,6 @@ import io
 import json
 import os
 import tarfile
-import tempfile
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path, PurePosixPath
@@ -44,10 +43,10 @@ from typing import Any
 import numpy as np
 
 from jmocap.data.clip import Clip, ClipFormatError, clip_from_arrays, clip_to_arrays
+from jmocap.io import atomic_write, npz_bytes
 
 MANIFEST = "manifest.jsonl"
 ARCHIVE_META = "archive.json"
-_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
 
 class ArchiveError(ValueError):
@@ -55,38 +54,6 @@ class ArchiveError(ValueError):
 
 
 # --- files ---------------------------------------------------------------------------------
-
-
-def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
-    """A compressed .npz (as ``numpy.savez_compressed`` writes it) with fixed timestamps, so
-    equal arrays give equal bytes."""
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for key in sorted(arrays):
-            arr = np.asanyarray(arrays[key])
-            member = io.BytesIO()
-            np.lib.format.write_array(member, arr, allow_pickle=False)
-            info = zipfile.ZipInfo(key + ".npy", date_time=_ZIP_DATE)
-            info.compress_type = zipfile.ZIP_DEFLATED
-            info.external_attr = 0o644 << 16
-            zf.writestr(info, member.getvalue())
-    return buf.getvalue()
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
 
 
 def _parse_manifest(text: str, where: str) -> list[dict[str, Any]]:
@@ -149,7 +116,7 @@ class ArchiveWriter:
                         f"(differences in {diff}); use another folder or the same settings"
                     )
             else:
-                _atomic_write(meta_path, (json.dumps(settings, indent=2, sort_keys=True) + "\n").encode())
+                atomic_write(meta_path, (json.dumps(settings, indent=2, sort_keys=True) + "\n").encode())
         self.entries: dict[str, dict[str, Any]] = {}
         if self.manifest_path.exists():
             text = self.manifest_path.read_text()
@@ -157,7 +124,7 @@ class ArchiveWriter:
             if text and not text.endswith("\n"):
                 # cut off the interrupted last line before appending
                 keep = text[: text.rfind("\n") + 1]
-                _atomic_write(self.manifest_path, keep.encode())
+                atomic_write(self.manifest_path, keep.encode())
         self._f = open(self.manifest_path, "a", encoding="utf-8")  # noqa: SIM115
 
     # -- state -------------------------------------------------------------------------------
@@ -189,7 +156,7 @@ class ArchiveWriter:
         if "/" in clip.name or clip.name.startswith("."):
             raise ArchiveError(f"clip name {clip.name!r} cannot be a file name in the archive")
         data = npz_bytes(clip_to_arrays(clip))
-        _atomic_write(self.root / fname, data)
+        atomic_write(self.root / fname, data)
         entry = {
             "name": clip.name,
             "file": fname,

@@ -39,13 +39,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from jmocap.io import atomic_write_npz
 from jmocap.layouts import LAYOUTS, get_layout
 
 FORMAT = "jmocap-clip-1"
@@ -359,28 +359,6 @@ def clip_to_arrays(clip: Clip) -> dict[str, np.ndarray]:
         if v is not None:
             arrays[key] = np.array(v, dtype=np.float64)
     return arrays
-
-
-def atomic_write_npz(
-    path: str | os.PathLike, arrays: dict[str, np.ndarray], compressed: bool = True
-) -> Path:
-    """Write ``arrays`` to ``path`` as .npz atomically (temp file in the same folder, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            (np.savez_compressed if compressed else np.savez)(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    return path
 
 
 def save_clip(path: str | os.PathLike, clip: Clip) -> Path:

@@ -27,7 +27,7 @@ from flax import struct
 from jmocap.model import Model
 from jmocap.physics import linalg
 from jmocap.physics.kinematics import Kinematics, _c, _dtype, contact_jacobian, forward_kinematics
-from jmocap.physics.rotations import quat_exp, quat_mul, quat_normalize
+from jmocap.physics.rotations import quat_error, quat_exp, quat_mul, quat_normalize
 
 Array = jnp.ndarray
 
@@ -254,6 +254,21 @@ def integrate_positions(model: Model, q: Array, qd: Array, dt) -> Array:
         quat = quat_normalize(quat_mul(q[qa + 3 : qa + 7], quat_exp(qd[da + 3 : da + 6] * dt)))
         q = q.at[qa : qa + 3].set(pos).at[qa + 3 : qa + 7].set(quat)
     return q
+
+
+def finite_difference_velocity(model: Model, q: Array, fps) -> Array:
+    """Backward-difference velocities (T, nv) of a pose sequence ``q`` (T, nq) sampled at
+    ``fps`` (MuJoCo's ``mj_differentiatePos`` between consecutive frames: world-frame root
+    displacement, body-frame rotation vector of the root quaternion difference, hinge angle
+    differences, each over ``1 / fps``); the first frame gets zero velocity."""
+    dt = 1.0 / jnp.asarray(fps, q.dtype)
+    q0 = jnp.concatenate([q[:1], q[:-1]])
+
+    def diff(a, b):
+        rot = quat_error(b[3:7], a[3:7])  # body-frame rotation from a to b
+        return jnp.concatenate([b[0:3] - a[0:3], rot, b[7:] - a[7:]]) / dt
+
+    return jax.vmap(diff)(q0, q)
 
 
 def integrate(model: Model, q: Array, qd: Array, qdd: Array, dt) -> tuple[Array, Array]:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import os
 import pickle
-import tempfile
 import zipfile
 import zlib
 from collections.abc import Sequence
@@ -25,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from jmocap.data.clip import FormatError
+from jmocap.io import atomic_write
 
 # what a damaged .npz/.npy can raise while being read (BadZipFile, zlib.error, pickle errors, ...);
 # FileNotFoundError is let through
@@ -83,20 +83,9 @@ def _load_json(path: Path, frame=None):
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
+    """Write UTF-8 text atomically (:func:`jmocap.io.atomic_write`), creating the folder."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    atomic_write(path, text)
 
 
 def _flat_triplets(values, J, path, frame, fieldname, layout_desc) -> np.ndarray:

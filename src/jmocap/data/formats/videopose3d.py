@@ -213,7 +213,7 @@ def write_videopose3d(
 
     ``sequences`` is ``subject -> action -> [(T, J, 2) array per camera]``.
     """
-    from jmocap.data.clip import atomic_write_npz
+    from jmocap.io import atomic_writer
 
     lay = get_layout(layout)
     inv = {v: k for k, v in _VP3D_LAYOUTS.items()}
@@ -236,7 +236,13 @@ def write_videopose3d(
         "positions_2d": np.array(positions, dtype=object),
         "metadata": np.array(metadata, dtype=object),
     }
-    return atomic_write_npz(path, arrays)
+    # the format is a pickled dict by definition (VideoPose3D's own files are): written with
+    # numpy's savez; jmocap reads such files only with an explicit opt-in (docs/formats.md)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_writer(path) as f:
+        np.savez_compressed(f, **arrays)
+    return path
 
 
 __all__ = [

@@ -1,0 +1,149 @@
+"""What every reconstruction method provides, and the registry that names them.
+
+A method is a set of pure functions over one clip (``jax.vmap`` them over clips, ``jax.jit``
+them once per shape):
+
+* ``reconstruct(params, model, inputs, config) -> Motion`` -- a whole clip;
+* ``reconstruct_chunk(params, model, inputs, carry, first, config, history)`` -- one chunk of a
+  long clip with the method's state carried across chunks (:mod:`jmocap.pipeline` runs clips of
+  any length in bounded memory with it); must agree with ``reconstruct`` to float rounding;
+* ``init_carry(model, config)`` -- a zero state of the carried pytree (its shapes);
+* ``history(config)`` -- how many frames of input before a chunk the chunk needs;
+* ``init_params(key, model, config)`` -- fresh parameters of the method's networks.
+
+``config`` is a :mod:`flax.struct` dataclass: fields marked static (stage choice, iteration
+counts, layout, network sizes) are part of the compiled program; every other field is a traced
+leaf (gains, friction, recovery factors), so it can change without recompiling and be
+differentiated (docs/architecture.md, "system identification").
+
+Methods register themselves by name (:func:`register`); *variants* are named config changes of a
+method (the paper's ablations). ``jmocap reconstruct --method``, ``jmocap eval --methods`` and
+the demo all resolve names with :func:`resolve`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from flax import struct
+
+
+def static(default: Any) -> Any:
+    """A config field that is part of the program's structure (a jit cache key, not traced)."""
+    return struct.field(pytree_node=False, default=default)
+
+
+def static_fields(config_type: type) -> tuple[str, ...]:
+    """Names of the static (structural) fields of a config type."""
+    return tuple(f.name for f in dataclasses.fields(config_type) if not f.metadata.get("pytree_node", True))
+
+
+def traced_fields(config_type: type) -> tuple[str, ...]:
+    """Names of the traced (differentiable) fields of a config type."""
+    return tuple(f.name for f in dataclasses.fields(config_type) if f.metadata.get("pytree_node", True))
+
+
+@dataclass(frozen=True)
+class Method:
+    """A registered reconstruction method (see the module docstring for the signatures)."""
+
+    name: str
+    summary: str
+    paper: str
+    config_type: type
+    reconstruct: Callable
+    reconstruct_chunk: Callable
+    init_carry: Callable
+    history: Callable[[Any], int]
+    init_params: Callable
+    #: whether the method estimates forces and torques (its Motion's grf / tau mean something)
+    estimates_forces: bool = True
+    #: whether frame t depends on frames <= t only (streaming-capable)
+    causal: bool = True
+
+    def make_config(self, fields: Mapping[str, Any] | None = None, **changes: Any):
+        """The method's config from a flat dict of fields (e.g. the JSON shipped with weights)
+        plus ``changes``. Fields of other registered methods' configs are ignored (a shared
+        config file serves every method); a field no method knows raises ``ValueError``."""
+        from jmocap.nets import NetConfig
+
+        merged = {**dict(fields or {}), **changes}
+        known = {f.name for f in dataclasses.fields(self.config_type)}
+        everyone = set().union(*({f.name for f in dataclasses.fields(m.config_type)} for m in _METHODS.values()))
+        everyone |= LEGACY_FIELDS
+        unknown = sorted(set(merged) - everyone)
+        if unknown:
+            raise ValueError(f"unknown config fields {unknown} (method {self.name!r} knows {sorted(known)})")
+        kw = {k: v for k, v in merged.items() if k in known}
+        if isinstance(kw.get("nets"), Mapping):
+            kw["nets"] = NetConfig(**kw["nets"])
+        return self.config_type(**kw)
+
+
+#: fields of older config files that are no longer config fields (accepted and ignored)
+LEGACY_FIELDS = frozenset({"kinematic_only"})
+
+_METHODS: dict[str, Method] = {}
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A named config change of a registered method (e.g. one of the paper's ablations)."""
+
+    name: str
+    method: str
+    changes: Mapping[str, Any] = field(default_factory=dict)
+    summary: str = ""
+
+
+_VARIANTS: dict[str, Variant] = {}
+
+
+def register(method: Method) -> Method:
+    if method.name in _METHODS or method.name in _VARIANTS:
+        raise ValueError(f"a method or variant named {method.name!r} is registered already")
+    _METHODS[method.name] = method
+    return method
+
+
+def register_variant(variant: Variant) -> Variant:
+    if variant.name in _METHODS or variant.name in _VARIANTS:
+        raise ValueError(f"a method or variant named {variant.name!r} is registered already")
+    if variant.method not in _METHODS:
+        raise ValueError(f"variant {variant.name!r}: no method {variant.method!r}")
+    _VARIANTS[variant.name] = variant
+    return variant
+
+
+def method_names() -> tuple[str, ...]:
+    """Registered methods, then variants, in registration order."""
+    return tuple(_METHODS) + tuple(_VARIANTS)
+
+
+def get_method(name: str) -> Method:
+    """A registered method by name (variants resolve to their method)."""
+    return resolve(name)[0]
+
+
+def resolve(name: str) -> tuple[Method, dict[str, Any]]:
+    """``(method, config changes)`` of a method or variant name."""
+    if name in _METHODS:
+        return _METHODS[name], {}
+    if name in _VARIANTS:
+        v = _VARIANTS[name]
+        return _METHODS[v.method], dict(v.changes)
+    raise ValueError(f"unknown method {name!r}; known: {', '.join(method_names())}")
+
+
+def describe(name: str) -> str:
+    if name in _METHODS:
+        return _METHODS[name].summary
+    return _VARIANTS[name].summary
+
+
+def config_dict(config) -> dict[str, Any]:
+    """A config as a flat JSON-able dict (nested NetConfig as a dict)."""
+    return dataclasses.asdict(config)

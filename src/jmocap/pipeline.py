@@ -1,0 +1,226 @@
+"""The compute core of batch reconstruction: any registered method, chunked, ``jit(vmap)``-ed and
+sharded over the local devices.
+
+:func:`reconstruct_chunk` runs one fixed-length chunk of one clip with the method's state carried
+in and out, so a clip of any length runs in bounded memory as a sequence of chunks;
+:func:`reconstruct_chunks` is its ``jax.jit(jax.vmap(...))`` over a batch of clips (one
+compilation per method, config structure and chunk shape; the config's traced parameters and
+the characters are arguments). :class:`Reconstructor` groups clips of equal chunk plans and
+shards each batch over every local device.
+
+Chunking is exact. A method needs ``method.history(config)`` frames of keypoints before a chunk
+(TPNet's receptive field: C_T reads a window of per-frame features that include C_P's pose,
+whose own window reaches further back, so frame t depends on frames ``t - 2(W - 1) .. t``; one
+more frame serves the backward-difference velocity). Before a clip's first frame the first frame
+is repeated, which is what :func:`jmocap.methods.stages.causal_windows` does for a whole clip;
+the dynamic state is carried from chunk to chunk. Chunked and whole-clip reconstructions agree
+to float32 rounding (tests/test_pipeline.py).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import partial
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from jmocap import methods
+from jmocap import physics as P
+from jmocap.constants import DEFAULT_HEIGHT_M
+from jmocap.data.clip import Clip
+from jmocap.inputs import ClipInputs
+from jmocap.model import Model, character
+from jmocap.motion import Motion
+from jmocap.results import MOTION_FIELDS
+
+Array = jnp.ndarray
+
+
+
+@struct.dataclass
+class ChunkResult:
+    """Per-frame results of one chunk (a batch adds a leading axis)."""
+
+    motion: Motion  # (L, ...)
+    keypoints3d: Array  # (L, J, 3) world-frame joints of motion.q in the config's layout
+
+
+def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry, first, config, *, method: str,
+                      history: int) -> tuple[Any, ChunkResult]:
+    """One chunk of one clip with ``method`` (a registered name): ``inputs`` holds
+    ``history + L`` frames, the chunk's L frames preceded by the ``history`` frames before them
+    (``inputs.mask[history:]`` marks the real chunk frames). ``carry`` is the method's state at
+    the end of the previous chunk; where ``first`` is True (the clip's first chunk) the method
+    starts afresh. Returns the state after the chunk's last real frame and the chunk's results."""
+    m = methods.get_method(method)
+    carry, motion = m.reconstruct_chunk(params, model, inputs, carry, first, config, history)
+    kp3d = jax.vmap(lambda q: P.keypoints(model, q, config.layout))(motion.q)
+    return carry, ChunkResult(motion, kp3d)
+
+
+@partial(jax.jit, static_argnames=("method", "history"))
+def reconstruct_chunks(params, models: Model, inputs: ClipInputs, carry, first, config, *, method: str,
+                       history: int) -> tuple[Any, ChunkResult]:
+    """:func:`reconstruct_chunk` over a batch of clips (leading axis of everything but
+    ``params`` and ``config``)."""
+    return jax.vmap(
+        lambda m, i, c, f: reconstruct_chunk(params, m, i, c, f, config, method=method, history=history)
+    )(models, inputs, carry, first)
+
+
+def chunk_plan(num_frames: int, chunk: int, bucket: int) -> tuple[int, ...]:
+    """The padded chunk lengths of a clip: full chunks of ``chunk`` frames, then the rest
+    rounded up to a multiple of ``bucket`` (at most ``chunk``)."""
+    if num_frames < 1 or chunk < 1 or bucket < 1:
+        raise ValueError(f"need num_frames, chunk, bucket >= 1, got {num_frames}, {chunk}, {bucket}")
+    full, rest = divmod(num_frames, chunk)
+    last = (min(chunk, -(-rest // bucket) * bucket),) if rest else ()
+    return (chunk,) * full + last
+
+
+def chunk_frames(num_frames: int, start: int, length: int, history: int) -> tuple[np.ndarray, np.ndarray]:
+    """Frame indices (history + length,) of the chunk starting at ``start`` (clamped to the clip:
+    the first frame repeats before it, the last after it) and which of them are real frames."""
+    idx = np.arange(start - history, start + length)
+    return np.clip(idx, 0, num_frames - 1), (idx >= 0) & (idx < num_frames)
+
+
+def _stack(trees):
+    return jax.tree.map(lambda *xs: np.stack(xs), *trees)
+
+
+def subject(clip: Clip) -> tuple[float | None, float | None]:
+    """The ``(height_m, mass_kg)`` a clip is reconstructed with (``None``: the nominal character)."""
+    return clip.height_m, clip.mass_kg
+
+
+def subject_model(clip: Clip) -> Model:
+    """The character a clip is reconstructed (and scored) with: jmocap's humanoid scaled to the
+    clip's height and mass when it gives them (:func:`jmocap.model.character`)."""
+    return character(*subject(clip))
+
+
+def subject_height(clip: Clip) -> float:
+    """The height (m) of the character of a clip."""
+    return DEFAULT_HEIGHT_M if clip.height_m is None else float(clip.height_m)
+
+
+class Reconstructor:
+    """Reconstructs clips with one method in batches of ``batch`` clips per device, chunk by chunk.
+
+    ``params``, ``method`` and ``config`` are fixed for the life of the object (the compiled code
+    is cached per chunk shape by :func:`reconstruct_chunks`); each clip gets its own character
+    (:func:`subject_model`), passed as an array argument (no recompilation per subject).
+    """
+
+    def __init__(
+        self,
+        params: dict,
+        config,
+        *,
+        method: str = methods.DEFAULT_METHOD,
+        chunk: int = 256,
+        bucket: int = 64,
+        batch: int = 8,
+        devices: Sequence[jax.Device] | None = None,
+    ):
+        if min(chunk, bucket, batch) < 1:
+            raise ValueError(f"chunk, bucket and batch must be >= 1, got {chunk}, {bucket}, {batch}")
+        self.method = methods.get_method(method)
+        if not isinstance(config, self.method.config_type):
+            raise TypeError(f"method {self.method.name!r} needs a {self.method.config_type.__name__}, "
+                            f"got {type(config).__name__}")
+        self.config = config
+        self.chunk, self.bucket, self.batch = int(chunk), int(bucket), int(batch)
+        self.devices = list(devices) if devices is not None else jax.devices()
+        mesh = Mesh(np.array(self.devices), ("clips",))
+        self._rows = NamedSharding(mesh, PartitionSpec("clips"))
+        replicated = NamedSharding(mesh, PartitionSpec())
+        self.params = jax.device_put(params, replicated)
+        self._config = jax.device_put(config, replicated)
+        self.group_size = self.batch * len(self.devices)
+        self.history = self.method.history(config)
+
+    def plan(self, clip: Clip) -> tuple[int, ...]:
+        return chunk_plan(clip.num_frames, self.chunk, self.bucket)
+
+    def run(self, clips: Sequence[Clip]) -> list[dict[str, np.ndarray]]:
+        """Results of any clips (in their order): grouped by chunk plan, ``group_size`` at a time."""
+        out: list[dict | None] = [None] * len(clips)
+        groups: dict[tuple[int, ...], list[int]] = {}
+        for i, c in enumerate(clips):
+            groups.setdefault(self.plan(c), []).append(i)
+        for idx in groups.values():
+            for s in range(0, len(idx), self.group_size):
+                part = idx[s : s + self.group_size]
+                for i, res in zip(part, self.run_group([clips[i] for i in part]), strict=True):
+                    out[i] = res
+        return out
+
+    def run_group(self, clips: Sequence[Clip]) -> list[dict[str, np.ndarray]]:
+        """Results of up to ``group_size`` clips sharing one chunk plan: per clip a dict of the
+        :data:`MOTION_FIELDS` as (T, ...) float32 arrays. The batch is filled up with copies of
+        the first clip (their results are dropped), so every call has the same shape."""
+        if not 0 < len(clips) <= self.group_size:
+            raise ValueError(f"a group has 1..{self.group_size} clips, got {len(clips)}")
+        plan = self.plan(clips[0])
+        if any(self.plan(c) != plan for c in clips):
+            raise ValueError("the clips of a group must share one chunk plan")
+        rows = list(clips) + [clips[0]] * (self.group_size - len(clips))
+        H, G = self.history, self.group_size
+        # every row's keypoints over the whole plan at once, history in front; chunk c is then
+        # the slice [start_c, start_c + H + L_c) (chunk_frames of each chunk)
+        kp, real = [], []
+        for c in rows:
+            idx, r = chunk_frames(c.num_frames, 0, sum(plan), H)
+            kp.append(np.asarray(c.keypoints, np.float32)[idx])
+            real.append(r)
+        kp, real = np.stack(kp), np.stack(real)
+        whole = _stack([ClipInputs.from_clip(c).replace(keypoints=None, mask=None) for c in rows])
+        models = _stack([subject_model(c) for c in rows])
+        zero = self.method.init_carry(subject_model(rows[0]), self.config)
+        carry = jax.tree.map(lambda a: np.zeros((G, *np.shape(a)), np.float32), zero)
+        models, whole, carry = jax.device_put((models, whole, carry), self._rows)
+        fetched, pending, start = [], None, 0
+        for c, length in enumerate(plan):
+            window = slice(start, start + H + length)
+            keypoints, mask, first = jax.device_put(
+                (kp[:, window], real[:, window], np.full(G, c == 0)), self._rows
+            )
+            carry, res = reconstruct_chunks(
+                self.params, models, whole.replace(keypoints=keypoints, mask=mask), carry, first,
+                self._config, method=self.method.name, history=H,
+            )
+            if pending is not None:  # fetch the previous chunk while this one runs
+                fetched.append(_fields(jax.device_get(pending)))
+            pending, start = res, start + length
+        fetched.append(_fields(jax.device_get(pending)))
+        return [
+            {k: np.concatenate([f[k][i] for f in fetched])[: c.num_frames] for k in MOTION_FIELDS}
+            for i, c in enumerate(clips)
+        ]
+
+
+def _fields(res: ChunkResult) -> dict[str, np.ndarray]:
+    m = res.motion
+    return dict(
+        q=m.q, qd=m.qd, tau=m.tau, grf=m.grf, contact_prob=m.contact_prob, target_q=m.target_q,
+        keypoints3d=res.keypoints3d,
+    )
+
+
+__all__ = [
+    "ChunkResult",
+    "Reconstructor",
+    "chunk_frames",
+    "chunk_plan",
+    "reconstruct_chunk",
+    "reconstruct_chunks",
+    "subject_height",
+    "subject_model",
+]
