@@ -1,17 +1,23 @@
 # The README's first two commands are `make demo` and `make test`.
-# Each one creates (or refreshes, when pyproject.toml changed) .venv and installs jmocap into it.
+# Each one creates (or refreshes, when pyproject.toml changed) .venv and installs jmocap into it,
+# editable, with the `test` extra (pytest, the reference QP solvers and the `viz` extra that
+# the demo's video and the render tests need).
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.jmocap-installed
 
-.PHONY: demo test test-slow test-all lint bench clean
+.PHONY: demo test test-slow test-all lint bench clean wheel-smoke
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
+
+# Build a wheel, install it (not editable) into a fresh venv and run the demo outside the tree.
+wheel-smoke:
+	PYTHON=$(PYTHON) .ci/wheel_smoke.sh
 
 demo: $(STAMP)
 	$(PY) -m jmocap.cli demo --out demo_out

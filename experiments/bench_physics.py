@@ -142,7 +142,7 @@ def main(argv=None):
         jax.config.update("jax_enable_x64", True)
     from jmocap.model import load_model
 
-    model = load_model()
+    model = load_model(with_mjx=not args.no_mjx)
     batches = [1, 64] if args.quick else [1, 64, 1024]
     repeats = 2 if args.quick else 5
     dtype = np.float64 if args.float64 else np.float32

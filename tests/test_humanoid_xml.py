@@ -1,4 +1,4 @@
-"""Checks of the character models/mjcf/humanoid.xml against MuJoCo C (the reference).
+"""Checks of the character src/jmocap/assets/mjcf/humanoid.xml against MuJoCo C (the reference).
 
 Uses only mujoco + numpy (and jmocap.layouts for the keypoint site names).  Tolerances:
 1e-9 for quantities that are sums of a few decimal numbers in float64 (mass, sole
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-XML = ROOT / "models" / "mjcf" / "humanoid.xml"
+XML = ROOT / "src" / "jmocap" / "assets" / "mjcf" / "humanoid.xml"
 GENERATOR = ROOT / "models" / "mjcf" / "make_humanoid.py"
 
 try:

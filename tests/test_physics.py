@@ -38,7 +38,7 @@ MODELS = {
 
 @pytest.fixture(scope="module", params=list(MODELS))
 def model64(request):
-    """Each test model, loaded with x64 on so that its MJX copy is float64 too."""
+    """Each test model, loaded with x64 on (its arrays float64)."""
     with x64():
         yield load_model(**MODELS[request.param])
 
@@ -203,7 +203,7 @@ def mjx_terms(model, q, qd):
 @pytest.mark.parametrize("name", [pytest.param("tree", marks=pytest.mark.slow), "humanoid"])
 def test_against_mjx(name):
     with x64():
-        model = load_model(**MODELS[name])
+        model = load_model(**MODELS[name], with_mjx=True)
         qs, qds = random_configurations(model.mj, 8, seed=9)
         ref = jax.jit(jax.vmap(lambda q, qd: mjx_terms(model, q, qd)))(qs, qds)
         out = all_terms(model, qs, qds, np.zeros_like(qds))

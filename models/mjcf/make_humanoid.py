@@ -1,10 +1,13 @@
 #!/usr/bin/env python
-"""Generate ``models/mjcf/humanoid.xml``, jmocap's character.
+"""Generate ``src/jmocap/assets/mjcf/humanoid.xml``, jmocap's character.
 
 Run from anywhere (pure Python + numpy, no jmocap import)::
 
-    python models/mjcf/make_humanoid.py            # writes humanoid.xml next to this file
-    python models/mjcf/make_humanoid.py --check    # exit 1 if humanoid.xml is out of date
+    python models/mjcf/make_humanoid.py            # writes src/jmocap/assets/mjcf/humanoid.xml
+    python models/mjcf/make_humanoid.py --check    # exit 1 if that file is out of date
+
+The XML ships inside the package (``jmocap/assets/mjcf/``, where :func:`jmocap.load_model`
+finds it in an installed wheel); this generator stays in the source tree.
 
 The XML is the source of truth that users read; this script is how it is made, so that
 the numbers in it (landmarks, de Leva 1996 parameters, joint limits) are derived in one
@@ -751,9 +754,12 @@ def generate() -> str:
     return "\n".join(xml)
 
 
+DEFAULT_OUT = Path(__file__).resolve().parents[2] / "src" / "jmocap" / "assets" / "mjcf" / "humanoid.xml"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", type=Path, default=Path(__file__).with_name("humanoid.xml"))
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--check", action="store_true", help="exit 1 if --out is out of date")
     args = ap.parse_args(argv)
     xml = generate()
