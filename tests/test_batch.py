@@ -48,7 +48,7 @@ from jmocap.methods.stages import target_pose
 from jmocap.model import load_model
 from jmocap.nets import NetConfig
 from jmocap.pipeline import chunk_frames, chunk_plan
-from jmocap.results import MOTION_FIELDS, RESULT_FORMAT, assumed_fields, check_finite
+from jmocap.results import MOTION_FIELDS, RESULT_FORMAT, assumed_fields, check_finite, load_result
 from jmocap.weights import check_params, load_run_params, params_sha256
 
 
@@ -304,13 +304,15 @@ def test_results_follow_the_schema(first_run, clips, params):
         assert len(str(r["model_sha256"])) == 64 and str(r["version"])
     assumed = json.loads(str(np.load(out / "bare.npz")["assumed"]))
     assert {"extrinsics", "height_m"} <= set(assumed)
-    export = pytest.importorskip("jmocap.export")
-    res = export.load_result(out / "long.npz")  # the project's reader of result files
+    res = load_result(out / "long.npz")  # the project's reader of result files
     assert res["q"].shape == (20, model.nq) and res["layout"] == "body25"
+    assert res["method"] == "physcap" and res["forces_estimated"] is True
+    assert res["mass_kg"] == pytest.approx(load_model(height_m=clips["long"].height_m,
+                                                      mass_kg=clips["long"].mass_kg).total_mass)
 
 
 def test_chunked_equals_unchunked(first_run, clips, params):
-    """The 20-frame clip, reconstructed in chunks of 8, equals jmocap.cycle.reconstruct on
+    """The 20-frame clip, reconstructed in chunks of 8, equals the physcap method's reconstruct on
     the whole clip (float32: rounding differences, relative to each field's magnitude)."""
     out, _, _ = first_run
     clip = clips["long"]

@@ -451,7 +451,7 @@ def net_force_percent(grf: Array, weight) -> Array:
 @jax.jit
 def grf_mean(grf: Array, weight, mask=None) -> Array:
     """Mean GRF (% body weight), [001] Table 2: the mean over real frames of the net contact
-    force magnitude over the body weight (``mass * 9.81``); about 100 % for any motion that
+    force magnitude over the body weight (``mass * GRAVITY``); about 100 % for any motion that
     starts and ends at rest."""
     f = net_force_percent(grf, weight)
     return _mean(f, _frame_mask(mask, f.shape), 1)

@@ -46,6 +46,7 @@ from pathlib import Path  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+from jmocap.constants import NUM_CONTACTS  # noqa: E402
 from jmocap.export import check_q  # noqa: E402
 from jmocap.io import atomic_path  # noqa: E402
 from jmocap.layouts import Layout, get_layout  # noqa: E402
@@ -438,7 +439,7 @@ def render_frames(
     W, H = _size(size, where)
     if quality not in ("fast", "high"):
         raise ValueError(f"{where}: quality must be 'fast' or 'high', got {quality!r}")
-    grf = _series(grf, (T, 4, 3), "grf", where)
+    grf = _series(grf, (T, NUM_CONTACTS, 3), "grf", where)
     contacts = _series(contacts, (T, 4), "contacts", where)
     mj = model.mj
     views = list(views)
@@ -651,10 +652,10 @@ def plot_forces(
     if not (math.isfinite(fps) and fps > 0):
         raise ValueError(f"{where}: fps must be positive, got {fps}")
     grf = np.asarray(grf, np.float64)
-    if grf.ndim != 3 or grf.shape[1:] != (4, 3):
-        raise ValueError(f"{where}: field 'grf' has shape {grf.shape}, expected (T, 4, 3)")
+    if grf.ndim != 3 or grf.shape[1:] != (NUM_CONTACTS, 3):
+        raise ValueError(f"{where}: field 'grf' has shape {grf.shape}, expected (T, {NUM_CONTACTS}, 3)")
     T = grf.shape[0]
-    gt_grf = _series(gt_grf, (T, 4, 3), "gt_grf", where)
+    gt_grf = _series(gt_grf, (T, NUM_CONTACTS, 3), "gt_grf", where)
     time = np.arange(T) / fps
     weight = None if model is None else model.total_mass * float(np.linalg.norm(model.gravity))
     unit = "body weights" if weight else "N"

@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from jmocap.constants import NUM_CONTACTS
 from jmocap.io import atomic_write_npz
 from jmocap.layouts import LAYOUTS, get_layout
 
@@ -318,7 +319,7 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
                     f"{where}: field 'gt_contacts' must have shape (T, 4), got {a.shape}"
                 )
         elif key == "gt_grf":
-            if a.shape[1:] != (4, 3):
+            if a.shape[1:] != (NUM_CONTACTS, 3):
                 raise ClipFormatError(
                     f"{where}: field 'gt_grf' must have shape (T, 4, 3), got {a.shape}"
                 )
