@@ -207,7 +207,10 @@ def _imported_synthetic_names():
     out = []
     for folder in ("src", "tests", "experiments"):
         for path in (ROOT / folder).rglob("*.py"):
-            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            text = path.read_text(encoding="utf-8")
+            if "jmocap.data.synthetic" not in text:
+                continue
+            for node in ast.walk(ast.parse(text)):
                 if isinstance(node, ast.ImportFrom) and node.module == "jmocap.data.synthetic":
                     out += [(path.name, a.name) for a in node.names]
     for path in [ROOT / "README.md", *(ROOT / "docs").glob("*.md")]:

@@ -66,9 +66,9 @@ def test_leg_fk_matches_mujoco(ch):
             mujoco.mj_kinematics(ch.mj, d)
             mujoco.mj_comPos(ch.mj, d)
             mujoco.mj_jacBody(ch.mj, d, jp, jr, L.ankle_body)
-            np.testing.assert_allclose(p[t], d.xpos[L.ankle_body], atol=FK_ATOL)
-            np.testing.assert_allclose(R[t], d.xmat[L.ankle_body].reshape(3, 3), atol=FK_ATOL)
-            np.testing.assert_allclose(J[t], np.vstack([jp[:, L.ik_dof], jr[:, L.ik_dof]]), atol=FK_ATOL)
+            np.testing.assert_allclose(p[t], d.xpos[L.ankle_body], atol=FK_ATOL, rtol=0)
+            np.testing.assert_allclose(R[t], d.xmat[L.ankle_body].reshape(3, 3), atol=FK_ATOL, rtol=0)
+            np.testing.assert_allclose(J[t], np.vstack([jp[:, L.ik_dof], jr[:, L.ik_dof]]), atol=FK_ATOL, rtol=0)
 
 
 def _mujoco_foot_points(mj, d, body):
@@ -98,7 +98,7 @@ def test_foot_points_match_mujoco(ch):
             ref = np.concatenate([_mujoco_foot_points(ch.mj, d, L.ankle_body),
                                   _mujoco_foot_points(ch.mj, d, L.toe_body)])
             assert got.shape == ref.shape and len(ref) > 6
-            np.testing.assert_allclose(got, ref, atol=FK_ATOL)
+            np.testing.assert_allclose(got, ref, atol=FK_ATOL, rtol=0)
 
 
 def test_stance_rockers_keep_their_pivot(ch):
@@ -114,14 +114,14 @@ def test_stance_rockers_keep_their_pivot(ch):
         heel = names_a.index(f"contact_{side}_heel")
         toe = n_a + names_t.index(f"contact_{side}_toe")
         flat = ch.foot_points(f, *ch.stance_pose(f, G, np.array(0.0)))
-        np.testing.assert_allclose(flat[[heel, toe], 2], 0.0, atol=1e-9)  # flat: both on the floor
+        np.testing.assert_allclose(flat[[heel, toe], 2], 0.0, atol=1e-9, rtol=0)  # flat: both on the floor
         for phi in (-0.4, -0.1):
             pts = ch.foot_points(f, *ch.stance_pose(f, G, np.array(phi)))
-            np.testing.assert_allclose(pts[heel], flat[heel], atol=FK_ATOL)
+            np.testing.assert_allclose(pts[heel], flat[heel], atol=FK_ATOL, rtol=0)
             assert pts[toe, 2] > 0.01  # toes up
         for phi in (0.1, 0.5):
             pts = ch.foot_points(f, *ch.stance_pose(f, G, np.array(phi)))
-            np.testing.assert_allclose(pts[n_a:], flat[n_a:], atol=1e-9)  # toe body unmoved
+            np.testing.assert_allclose(pts[n_a:], flat[n_a:], atol=1e-9, rtol=0)  # toe body unmoved
             assert pts[heel, 2] > 0.005  # heel up
 
 
@@ -150,8 +150,8 @@ def test_solve_legs_reaches_mujoco_targets(ch):
         d.qpos[:] = q[t]
         mujoco.mj_kinematics(ch.mj, d)
         for f, L in enumerate(ch.legs):
-            np.testing.assert_allclose(d.xpos[L.ankle_body], p_t[f, t], atol=IK_ATOL_M)
-            np.testing.assert_allclose(d.xmat[L.ankle_body].reshape(3, 3), R_t[f, t], atol=IK_ATOL_RAD)
+            np.testing.assert_allclose(d.xpos[L.ankle_body], p_t[f, t], atol=IK_ATOL_M, rtol=0)
+            np.testing.assert_allclose(d.xmat[L.ankle_body].reshape(3, 3), R_t[f, t], atol=IK_ATOL_RAD, rtol=0)
             lo, hi = ch.mj.jnt_range[ch.mj.dof_jntid[L.ik_dof]].T
             assert np.all(q[t, L.ik_qadr] >= lo) and np.all(q[t, L.ik_qadr] <= hi)
 

@@ -1,18 +1,21 @@
 """Cameras and 2D keypoints of the synthetic clips (``jmocap.data.synthetic.cameras`` and
 ``jmocap.data.synthetic.keypoints``).
 
-References: a homogeneous ``K [R t]`` numpy pinhole, :meth:`jmocap.camera.Camera.look_at`,
-the configured probabilities and noise levels of :class:`Corruption` (statistical bounds).
+References: a homogeneous ``K [R t]`` numpy pinhole, a numpy look-at and a hand-worked
+camera, the configured probabilities and noise levels of :class:`Corruption` (statistical
+bounds).
 
 Tolerances: projections 1e-3 px for stored clips (float32 storage of 3D points ~1e-7 m at
-<= 8 m gives ~1e-4 px), 1e-9 px for float64 inputs; look-at 1e-6 (the JAX camera runs in
-float32 unless x64 is on); drop / outlier fractions within the binomial spread of 400 x 25
-draws (documented at each assertion).
+<= 8 m gives ~1e-4 px), 1e-9 px for float64 inputs; look-at 1e-14 (float64 rounding: the
+package camera is called in float64 whatever the JAX setting); corruption statistics are
+fixed-seed checks of 400 frames x 25 joints with generous bounds.
 """
 
 from __future__ import annotations
 
+import jax
 import numpy as np
+import pytest
 
 from jmocap.data import synthetic as S
 from jmocap.layouts import get_layout
@@ -46,13 +49,42 @@ def test_clean_keypoints_are_projections():
     assert np.all(head < feet)  # image y grows downwards: head above the ankles
 
 
-def test_look_at_matches_camera_module():
-    from jmocap.camera import Camera
+def _look_at_reference(eye, target, up=(0.0, 0.0, 1.0)):
+    """Rows of R: image right = forward x up, image down = forward x right, forward."""
+    eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
+    fwd = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(fwd, up)
+    right /= np.linalg.norm(right)
+    R = np.stack([right, np.cross(fwd, right), fwd])
+    E = np.eye(4)
+    E[:3, :3], E[:3, 3] = R, -R @ eye
+    return E
 
-    eye, target = np.array([4.0, -2.0, 1.3]), np.array([0.2, 0.5, 0.9])
-    E = S.look_at_extrinsics(eye, target)
-    ref = np.asarray(Camera.look_at(eye, target, dtype=np.float64).extrinsics)
-    np.testing.assert_allclose(E, ref, atol=1e-6)
+
+def test_look_at_hand_worked():
+    # at (0, -4, 1) looking along world +y: image right = world +x, image down = world -z
+    E = S.look_at_extrinsics([0.0, -4.0, 1.0], [0.0, 0.0, 1.0])
+    ref = np.array([[1.0, 0, 0, 0], [0, 0, -1, 1], [0, 1, 0, 4], [0, 0, 0, 1]])
+    np.testing.assert_allclose(E, ref, atol=1e-15)
+
+
+@pytest.mark.parametrize("x64", [False, True])
+def test_look_at_is_float64_whatever_the_jax_setting(x64):
+    """The package camera runs in float64 for the generator even with x64 off (float32 would
+    be ~1e-7 off)."""
+    old = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", x64)
+    try:
+        eye, target = np.array([4.0, -2.0, 1.3]), np.array([0.2, 0.5, 0.9])
+        E = S.look_at_extrinsics(eye, target)
+    finally:
+        jax.config.update("jax_enable_x64", old)
+    assert isinstance(E, np.ndarray) and E.dtype == np.float64 and E.flags.writeable
+    np.testing.assert_allclose(E, _look_at_reference(eye, target), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(-E[:3, :3].T @ E[:3, 3], eye, atol=1e-14)  # camera centre
+    uv, z = S.project_points([1000.0, 1000.0, 640.0, 360.0], E, target)
+    np.testing.assert_allclose(uv, [640.0, 360.0], atol=1e-9)  # the target is on the axis
+    assert z > 0
 
 
 def test_project_points_is_the_pinhole():

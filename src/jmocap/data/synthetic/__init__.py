@@ -31,8 +31,10 @@ Everything is deterministic for a seed: a clip's random stream is
 The package, one concern per module (each imports only the ones above it):
 
 * :mod:`~jmocap.data.synthetic.errors` -- :class:`GenerationError`;
+* :mod:`~jmocap.data.synthetic.bridge` -- calling the package's JAX code (the look-at camera)
+  on numpy arrays in float64;
 * :mod:`~jmocap.data.synthetic.rotations`, :mod:`~jmocap.data.synthetic.curves` -- numpy
-  rotation helpers and scalar functions of time;
+  rotation helpers (why they stay numpy: see there) and scalar functions of time;
 * :mod:`~jmocap.data.synthetic.character` -- :class:`Character` (the scaled humanoid, foot
   geometry, leg IK), :func:`character`;
 * :mod:`~jmocap.data.synthetic.plan` -- :class:`Plan`, :class:`Stance`, :class:`Segment`,

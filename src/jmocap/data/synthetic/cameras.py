@@ -1,8 +1,9 @@
 """Static cameras of the synthetic clips: configuration, look-at placement, sampling.
 
-:func:`look_at_extrinsics` and :func:`project_points` are numpy (float64) twins of
-:meth:`jmocap.camera.Camera.look_at` and :func:`jmocap.camera.project` (same maths, same
-OpenCV conventions); :func:`sample_camera` places a camera that keeps the subject in view.
+:func:`look_at_extrinsics` is the package's :meth:`jmocap.camera.Camera.look_at` called on
+numpy arrays in float64 (:func:`~.bridge.np64`); :func:`project_points` is the numpy form of
+:func:`jmocap.camera.project` (its docstring says why it stays numpy); :func:`sample_camera` places a
+camera that keeps the subject in view.
 """
 
 from __future__ import annotations
@@ -10,8 +11,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from jmocap.camera import Camera
+from jmocap.data.synthetic.bridge import np64
 from jmocap.data.synthetic.errors import GenerationError
 
 
@@ -29,23 +34,27 @@ class CameraConfig:
     tries: int = 30
 
 
+def _look_at(eye, target, up):
+    return Camera.look_at(eye, target, up, dtype=jnp.float64).extrinsics
+
+
+_look_at_jit = jax.jit(_look_at)  # fixed (3,) shapes: compiled once per process (~1 s), then ~1 ms
+
+
 def look_at_extrinsics(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """World->camera [R t; 0 1] (OpenCV axes) of a camera at ``eye`` looking at ``target``
-    (the numpy twin of :meth:`jmocap.camera.Camera.look_at`)."""
-    eye = np.asarray(eye, float)
-    fwd = np.asarray(target, float) - eye
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, np.asarray(up, float))
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    E = np.eye(4)
-    E[:3, :3] = np.stack([right, down, fwd])
-    E[:3, 3] = -E[:3, :3] @ eye
-    return E
+    """World->camera [R t; 0 1] (OpenCV axes), float64 (4, 4), of a camera at ``eye`` looking
+    at ``target``: the extrinsics of :meth:`jmocap.camera.Camera.look_at`."""
+    return np64(_look_at_jit, eye, target, up)
 
 
 def project_points(intrinsics, extrinsics, X):
-    """Pinhole projection of world points (..., 3): pixels (..., 2) and depth (...,)."""
+    """Pinhole projection of world points (..., 3): pixels (..., 2) and depth (...,).
+
+    The maths of :func:`jmocap.camera.project` (``u = fx X/Z + cx``, ``v = fy Y/Z + cy``; that
+    one maps Z = 0 to the principal point), kept in numpy: it projects every joint-frame of a
+    clip (T x J points, T different for every clip) up to ~70 times per clip in
+    :func:`sample_camera`, and JAX would compile again for every new T (0.5 s per shape
+    measured, against ~1 ms per call here)."""
     fx, fy, cx, cy = intrinsics
     Xc = X @ extrinsics[:3, :3].T + extrinsics[:3, 3]
     z = Xc[..., 2]

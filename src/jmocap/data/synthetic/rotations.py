@@ -1,12 +1,18 @@
-"""Small numpy rotation helpers of the generator (matrices, rotation vectors, quaternions).
+"""Rotation helpers of the generator (matrices, rotation vectors, quaternions) on numpy arrays.
 
-These run on plain float64 numpy arrays inside the generator's Python loops: the leg IK
-(:meth:`~jmocap.data.synthetic.character.Character.solve_legs` calls :func:`_exp_rot` and
-:func:`_log_rot` for every joint at every Gauss-Newton iteration, on sub-batches of varying
-size), the foot geometry of every stance and the swing interpolation. ``jmocap.physics.rotations``
-holds the package's JAX versions of the same maths (``axis_angle_to_mat``, ``quat_to_mat``,
-``mat_to_quat``); an eager JAX call costs milliseconds of dispatch (and a jit would recompile
-for every new batch size), against microseconds here, so the hot-loop helpers stay numpy.
+These deliberately stay numpy rather than calling the package's JAX rotations
+(``jmocap.physics.rotations``: ``axis_angle_to_mat`` is :func:`_rx` / :func:`_ry` / :func:`_rz`
+/ :func:`_exp_rot`, ``quat_to_mat`` is :func:`_quat2mat` after normalising; the package has no
+matrix logarithm, ``quat_error`` is the quaternion form of :func:`_log_rot`). They run inside
+the generator's Python loops on arrays whose shape changes with every clip and iteration: the
+leg IK (:meth:`~jmocap.data.synthetic.character.Character.leg_fk` / ``solve_legs`` call
+:func:`_exp_rot` and :func:`_log_rot` for every joint at every Gauss-Newton iteration on
+sub-batches of the frames still moving, and :func:`_quat2mat` once per solve on all frames),
+the foot geometry of every stance, the swing interpolation (:func:`_slerp_R`). JAX compiles
+for every new shape -- measured on the 2-core machine: 0.5-1 s per shape under ``jit``, several
+seconds per call of ``mat_to_quat`` run eagerly -- against microseconds here; routing
+``_quat2mat`` / ``_mat2quat`` and the projection eagerly through the package code made clip
+generation about 4x slower. :func:`_mat2quat` is MuJoCo C's ``mju_mat2Quat``.
 """
 
 from __future__ import annotations
@@ -56,15 +62,17 @@ def _log_rot(R):
     small = s < 1e-6
     scale = np.where(small, 0.5 + th**2 / 12.0, th / (2.0 * np.where(small, 1.0, s)))
     w = v * scale[..., None]
-    # near pi: use the symmetric part
+    # near pi, v = 2 sin(th) a vanishes: the axis comes from the symmetric part
+    # (R + R^T) / 2 = cos(th) I + (1 - cos(th)) a a^T, its sign from v
     near_pi = (th > np.pi - 1e-3)
     if np.any(near_pi):
-        Rp = R[near_pi]
         out = []
-        for Ri, thi in zip(Rp, th[near_pi], strict=True):
-            B = (Ri + np.eye(3)) / 2.0
-            k = int(np.argmax(np.diag(B)))
-            axis = B[:, k] / math.sqrt(max(B[k, k], 1e-12))
+        for Ri, ci, thi, vi in zip(R[near_pi], tr[near_pi], th[near_pi], v[near_pi], strict=True):
+            aaT = ((Ri + Ri.T) / 2.0 - ci * np.eye(3)) / (1.0 - ci)
+            k = int(np.argmax(np.diag(aaT)))
+            axis = aaT[:, k] / math.sqrt(max(aaT[k, k], 1e-12))
+            if np.dot(axis, vi) < 0.0:
+                axis = -axis
             out.append(axis * thi)
         w[near_pi] = np.array(out)
     return w
