@@ -1,6 +1,6 @@
 """The character: a scaled humanoid, its legs' geometry, leg inverse kinematics.
 
-:class:`Character` wraps a :class:`jmocap.Model` (``load_model(height_m=...)``) and precomputes
+:class:`Character` wraps a :class:`jmocap.Model` (``jmocap.model.character``) and precomputes
 what the generator needs about it: the standing pose, joint ranges, each leg's hinge chain and
 foot geometry in the foot's ground frame (contact sites, toe hinge, sole points). The legs are
 solved by damped Gauss-Newton on a numpy transcription of MuJoCo's kinematics for the hinge
@@ -19,7 +19,7 @@ import numpy as np
 from jmocap.constants import DEFAULT_HEIGHT_M
 from jmocap.data.synthetic.rotations import _exp_rot, _log_rot, _quat2mat, _ry, _rz
 from jmocap.layouts import CONTACT_SITES
-from jmocap.model import load_model
+from jmocap.model import character as scaled_character
 
 _DEBUG = False
 
@@ -56,8 +56,9 @@ class _Leg:
 class Character:
     """A scaled humanoid and everything the generator precomputes about it.
 
-    Wraps a :class:`jmocap.Model` (``load_model(height_m=...)``) and a scratch ``MjData``.
-    Joint names follow ``models/mjcf/humanoid.xml`` (SMPL bodies, ``<body>_x/_y/_z`` hinges).
+    Wraps a :class:`jmocap.Model` (``jmocap.model.character(height_m, mass_kg)``) and a scratch
+    ``MjData``. Joint names follow ``jmocap/assets/mjcf/humanoid.xml`` (SMPL bodies,
+    ``<body>_x/_y/_z`` hinges).
     """
 
     def __init__(self, model):
@@ -337,12 +338,13 @@ _CHAR_CACHE: dict[float, Character] = {}
 
 
 def character(height_m: float) -> Character:
-    """A cached :class:`Character` for a height (rounded to 1 cm)."""
+    """A cached :class:`Character` for a height (rounded to 1 cm; mass for a BMI of 22), on the
+    package's one model cache (:func:`jmocap.model.character`)."""
     h = round(float(height_m), 2)
     ch = _CHAR_CACHE.get(h)
     if ch is None:
         mass = 22.0 * h * h  # BMI 22
-        ch = Character(load_model(height_m=h, mass_kg=mass, with_mjx=False))
+        ch = Character(scaled_character(h, mass))
         if len(_CHAR_CACHE) > 64:
             _CHAR_CACHE.pop(next(iter(_CHAR_CACHE)))
         _CHAR_CACHE[h] = ch
