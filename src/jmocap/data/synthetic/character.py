@@ -248,7 +248,7 @@ class Character:
         """Ankle body pose and its Jacobian w.r.t. the 7 leg hinges, vectorised over frames.
 
         A numpy transcription of MuJoCo's ``mj_kinematics`` for the hinge chain pelvis -> hip
-        -> knee -> ankle (``tests/test_synthetic.py`` checks it against MuJoCo C).
+        -> knee -> ankle (``tests/test_synthetic_character.py`` checks it against MuJoCo C).
         Returns (R (B, 3, 3), p (B, 3), J (B, 6, 7): rows = linear, angular).
         """
         L = self.legs[leg]
