@@ -4,11 +4,11 @@ One synthetic clip archive (jmocap.data.synthetic, written once), reconstructed 
 
   (a) jmocap.batch.reconstruct_archive - chunked, vmapped over ``--batch`` clips per device,
       sharded over the local devices - at each batch size of ``--batches``;
-  (b) the same in kinematic-only mode (TPNet only) at the largest batch size;
-  (c) a per-clip loop: read the clip, ``jax.jit(jmocap.cycle.reconstruct)`` on it alone (padded
-      to a multiple of ``--bucket`` frames, so lengths share compilations, as the engine's
-      buckets do), world keypoints, write the same result file. What a script without the
-      batch engine would do.
+  (b) the same with the ``kinematic`` method (TPNet only) at the largest batch size;
+  (c) a per-clip loop: read the clip, ``jax.jit`` of the ``physcap`` method's ``reconstruct`` on
+      it alone (padded to a multiple of ``--bucket`` frames, so lengths share compilations, as
+      the engine's buckets do), world keypoints, write the same result file. What a script
+      without the batch engine would do.
 
 Each is run twice into fresh output folders: "cold" includes compilation, "warm" reuses the
 compiled code (the persistent compilation cache is off). Throughput is from the warm run;
@@ -22,13 +22,11 @@ Usage:  python experiments/bench_batch.py [--quick] [--clips N] [--frames MIN:MA
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import platform
 import shutil
 import tempfile
 import time
-from functools import partial
 from pathlib import Path
 
 import jax
@@ -62,54 +60,55 @@ def make_archive(root: Path, clips: int, frames: tuple[int, int], seed: int = 0)
     return total
 
 
-def run_engine(archive, out, params, config, options):
+def run_engine(archive, out, params, config, options, method="physcap"):
     from jmocap.batch import reconstruct_archive
 
     t = time.perf_counter()
-    s = reconstruct_archive(archive, out, params, config, options)
+    s = reconstruct_archive(archive, out, params, config, options, method=method)
     el = time.perf_counter() - t
     if s["failed"]:
         raise RuntimeError(f"{s['failed']} clips failed: {s['failures'][:3]}")
     return el, s["frames"]
 
 
-@partial(jax.jit, static_argnames="config")
+@jax.jit
 def _one_clip(params, model, inputs, config):
+    # the config is an ordinary argument: its static fields (layout, iterations, ...) are part
+    # of the jit cache key, its physical parameters are traced
     from jmocap import physics as P
-    from jmocap.cycle import reconstruct
+    from jmocap.methods import get_method
 
-    r = reconstruct(params, model, inputs, config)
+    r = get_method("physcap").reconstruct(params, model, inputs, config)
     return r, jax.vmap(lambda q: P.keypoints(model, q, config.layout))(r.q)
 
 
 def run_loop(archive, out, params, config, bucket):
     """(c): one clip at a time through jit(reconstruct), same inputs and result files."""
-    from jmocap.batch import (
-        Reconstructor,
-        ResultWriter,
-        assumed_fields,
-        check_finite,
-        result_arrays,
-        run_identity,
-    )
-    from jmocap.cycle import ClipInputs
+    from jmocap.batch import run_identity
     from jmocap.data.archive import Archive
+    from jmocap.inputs import ClipInputs
+    from jmocap.methods import get_method
+    from jmocap.pipeline import subject_height, subject_model
+    from jmocap.results import ResultWriter, assumed_fields, check_finite, result_arrays
 
-    identity = run_identity(params, config)
-    heights = Reconstructor(params, config, chunk=1, bucket=1, batch=1)  # its model cache only
+    method = get_method("physcap")
+    identity = run_identity(params, config, method.name)
     t, frames = time.perf_counter(), 0
     with Archive(archive) as a, ResultWriter(out) as w:
         for name in a.names():
             clip = a.load(name)
             T = clip.num_frames
-            h = heights.model_height(clip)
+            h, model = subject_height(clip), subject_model(clip)
             x = ClipInputs.from_clip(clip, length=-(-T // bucket) * bucket)
-            r, kp = jax.device_get(_one_clip(params, heights.model(h), x, config=config))
+            r, kp = jax.device_get(_one_clip(params, model, x, config))
             res = dict(q=r.q, qd=r.qd, tau=r.tau, grf=r.grf, contact_prob=r.contact_prob,
                        target_q=r.target_q, keypoints3d=kp)
             res = {k: np.asarray(v)[:T] for k, v in res.items()}
             check_finite(res, name)
-            w.add_result(name, result_arrays(clip, res, height_m=h, identity=identity, source=name,
+            w.add_result(name, result_arrays(clip, res, method=method.name, height_m=h,
+                                             mass_kg=model.total_mass,
+                                             forces_estimated=method.estimates_forces,
+                                             identity=identity, source=name,
                                              assumed=assumed_fields(clip)), frames=T)
             frames += T
     return time.perf_counter() - t, frames
@@ -129,20 +128,23 @@ def main() -> None:
     ap.add_argument("--keep", help="keep the archive and outputs in this folder")
     args = ap.parse_args()
 
-    from jmocap.batch import BatchOptions, load_run_params
-    from jmocap.cycle import CycleConfig, init_params
-    from jmocap.model import load_model
+    from jmocap import methods
+    from jmocap.batch import BatchOptions
+    from jmocap.methods import PhysCapConfig
+    from jmocap.model import character
     from jmocap.nets import NetConfig
+    from jmocap.weights import load_run_params
 
+    physcap = methods.get_method("physcap")
     if args.quick:
         args.clips, args.frames, args.batches, args.chunk, args.bucket = 8, "20:40", "1,4", 32, 32
-        config = CycleConfig(iterations=2, nets=NetConfig(tp_width=32, dyn_width=64, grf_width=64, tp_blocks=2))
-        params, source = init_params(jax.random.PRNGKey(0), load_model(with_mjx=False), config), "random init, small nets"
+        config = PhysCapConfig(iterations=2, nets=NetConfig(tp_width=32, dyn_width=64, grf_width=64, tp_blocks=2))
+        params, source = physcap.init_params(jax.random.PRNGKey(0), character(), config), "random init, small nets"
     elif args.random_init:
-        config = CycleConfig()
-        params, source = init_params(jax.random.PRNGKey(0), load_model(with_mjx=False), config), "random init"
+        config = PhysCapConfig()
+        params, source = physcap.init_params(jax.random.PRNGKey(0), character(), config), "random init"
     else:
-        params, config = load_run_params(args.params)
+        params, config = load_run_params(args.params, method="physcap")
         source = args.params or "shipped weights"
     lo, hi = (int(v) for v in args.frames.split(":"))
     batches = [int(b) for b in args.batches.split(",")]
@@ -172,9 +174,9 @@ def main() -> None:
     for b in batches:
         opts = BatchOptions(chunk=args.chunk, bucket=args.bucket, batch=b)
         bench("engine", b, lambda o, opts=opts: run_engine(archive, o, params, config, opts))
-    kin = dataclasses.replace(config, kinematic_only=True)
+    kin = methods.get_method("kinematic").make_config(methods.config_dict(config))
     opts = BatchOptions(chunk=args.chunk, bucket=args.bucket, batch=max(batches))
-    bench("engine kinematic", max(batches), lambda o: run_engine(archive, o, params, kin, opts))
+    bench("engine kinematic", max(batches), lambda o: run_engine(archive, o, params, kin, opts, "kinematic"))
     if not args.no_loop:
         bench("per-clip loop", 1, lambda o: run_loop(archive, o, params, config, args.bucket))
 

@@ -1,16 +1,17 @@
-"""Frames per second of the whole pipeline, ``jmocap.cycle.reconstruct``, side by side, in one run.
+"""Frames per second of the whole pipeline, the ``physcap`` method's ``reconstruct``, side by side,
+in one run.
 
-``jax.jit(jax.vmap(reconstruct))`` over a batch of clips (TPNet, then k = 6 dynamic-cycle
-iterations per frame: DyNet, PD, GRFNet, friction pyramid, forward dynamics, contact projection,
-integration), with the physics terms M, h, J_c from
+``jax.jit(jax.vmap(reconstruct))`` (``jmocap.methods.get_method("physcap").reconstruct``) over a
+batch of clips (TPNet, then k = 6 dynamic-cycle iterations per frame: DyNet, PD, GRFNet, friction
+pyramid, forward dynamics, contact projection, integration), with the physics terms M, h, J_c from
 
-  (a) jmocap (``CycleConfig(physics_backend="jmocap")``, the default), at 1, 64 and 512 clips;
+  (a) jmocap (``PhysCapConfig(physics_backend="jmocap")``, the default), at 1, 64 and 512 clips;
   (b) MJX's own functions (``physics_backend="mjx"``): the same pipeline, only M, h and J_c
       differ. It is slow on CPU, so it is measured on 1 clip of a few frames.
 
 Inputs: synthetic clips (``jmocap.data.synthetic``, 300 frames, 30 fps, BODY_25), tiled to the
 batch; parameters: the shipped weights (``jmocap.weights.default_params``) when they exist, else
-``cycle.init_params`` (the speed does not depend on the weights' values).
+the method's ``init_params`` (the speed does not depend on the weights' values).
 
 Every configuration runs in its own subprocess (so its peak memory, ``ru_maxrss``, is its own):
 compile (trace + lower + XLA compile) is timed separately, then the compiled executable is called
@@ -66,23 +67,23 @@ def rss_mb() -> float:
 def load_params(model, cfg):
     import jax
 
-    from jmocap.cycle import init_params
+    from jmocap.methods import get_method
 
     try:
         from jmocap.weights import default_params
 
-        params, shipped_cfg = default_params()
+        params, shipped_cfg = default_params("physcap")
         return params, shipped_cfg, "shipped weights"
     except (FileNotFoundError, ImportError):
-        return init_params(jax.random.PRNGKey(0), model, cfg), cfg, "init_params (random)"
+        return get_method("physcap").init_params(jax.random.PRNGKey(0), model, cfg), cfg, "init_params (random)"
 
 
 def make_inputs(batch: int, frames: int):
     import jax
     import numpy as np
 
-    from jmocap.cycle import ClipInputs
     from jmocap.data.synthetic import SynthConfig, generate_clip
+    from jmocap.inputs import ClipInputs
 
     clips = [generate_clip(0, i, SynthConfig(frames=CLIP_FRAMES)) for i in range(min(N_DISTINCT, batch))]
     one = [ClipInputs.from_clip(c) for c in clips]
@@ -99,17 +100,16 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
     have been started with ``--xla_force_host_platform_device_count``; :func:`in_subprocess`
     does this), exactly as ``jmocap.batch`` shards its groups of clips.
     """
-    import dataclasses
-
     import jax
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-    from jmocap.cycle import CycleConfig, reconstruct
+    from jmocap.methods import PhysCapConfig, get_method
     from jmocap.model import load_model
 
+    reconstruct = get_method("physcap").reconstruct
     model = load_model(with_mjx=backend == "mjx")
-    params, cfg, source = load_params(model, CycleConfig())
-    cfg = dataclasses.replace(cfg, physics_backend=backend)
+    params, cfg, source = load_params(model, PhysCapConfig())
+    cfg = cfg.replace(physics_backend=backend)
     inputs = make_inputs(batch, frames)
     if devices > 1:
         if len(jax.devices()) < devices or batch % devices:
@@ -118,7 +118,9 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
         inputs = jax.device_put(inputs, NamedSharding(mesh, PartitionSpec("clips")))
         params = jax.device_put(params, NamedSharding(mesh, PartitionSpec()))
     rss_setup = rss_mb()
-    fn = jax.jit(jax.vmap(reconstruct, in_axes=(None, None, 0, None)), static_argnums=3)
+    # the config is an ordinary argument (its static fields are part of the compiled program,
+    # its physical parameters are traced), passed to the executable like the others
+    fn = jax.jit(jax.vmap(reconstruct, in_axes=(None, None, 0, None)))
     t0 = time.perf_counter()
     exe = fn.lower(params, model, inputs, cfg).compile()
     compile_s = time.perf_counter() - t0
@@ -126,7 +128,7 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
     t_start, c_start = time.perf_counter(), cpu_s()
     while True:
         t0 = time.perf_counter()
-        out = jax.block_until_ready(exe(params, model, inputs))
+        out = jax.block_until_ready(exe(params, model, inputs, cfg))
         times.append(time.perf_counter() - t0)
         if time.perf_counter() - t_start >= min_time or len(times) >= 5:
             break
@@ -168,22 +170,15 @@ def profile(batch: int, min_time: float = 1.0):
     import numpy as np
 
     from jmocap import physics as P
-    from jmocap.cycle import (
-        FLOOR_NORMAL,
-        CycleConfig,
-        CycleState,
-        DyNet,
-        GRFNet,
-        cycle_step,
-        dynet_features,
-        grfnet_features,
-        pd_error,
-        target_pose,
-    )
+    from jmocap.constants import FLOOR_NORMAL
+    from jmocap.methods import PhysCapConfig
+    from jmocap.methods.physcap import CycleState, cycle_step
+    from jmocap.methods.stages import dynet_features, grfnet_features, pd_error, target_pose
     from jmocap.model import load_model
+    from jmocap.nets import DyNet, GRFNet
 
     model = load_model(with_mjx=False)
-    params, cfg, _ = load_params(model, CycleConfig())
+    params, cfg, _ = load_params(model, PhysCapConfig())
     inputs = make_inputs(batch, 30)
     tp = jax.jit(jax.vmap(lambda i: target_pose(params, model, i, cfg)))(inputs)
     q = tp.q_hat[:, 5]

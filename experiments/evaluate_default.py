@@ -64,14 +64,14 @@ def walking_clip(clips):
 def plot_grf(result, clip, path: Path, method: str) -> Path | None:
     """Estimated vs ground-truth forces of ``clip`` (jmocap.viz.plot_forces, after paper 000
     Fig. 4); the ground truth is rescaled so that both read in their own body weights."""
-    from jmocap.evaluate import estimate_model, subject_model
+    from jmocap.pipeline import subject_model
     from jmocap.viz import plot_forces
 
     motion = result.motions.get(method, {}).get(clip.name)
     if motion is None or clip.gt_grf is None:
         return None
-    model = estimate_model(clip)
-    gt_mass = clip.mass_kg or subject_model(clip).total_mass
+    model = subject_model(clip)  # the character the methods reconstructed the clip with
+    gt_mass = clip.mass_kg or model.total_mass
     gt = np.asarray(clip.gt_grf) * (model.total_mass / gt_mass)
     return plot_forces(path, motion["grf"], clip.fps, gt_grf=gt, tau=motion["tau"], model=model)
 
@@ -126,12 +126,13 @@ def results_section(result, *, smoke: bool, source: str, command: str, wall_s: f
 
 
 def update_doc(doc: Path, section: str) -> None:
-    from jmocap.evaluate import _atomic_write
+    from jmocap.io import atomic_write
 
     text = doc.read_text() if doc.exists() else "# Evaluation\n\n"
     pattern = re.compile(re.escape(BEGIN) + r".*?" + re.escape(END) + r"\n?", re.S)
     text = pattern.sub(lambda _: section, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + section
-    _atomic_write(doc, text)
+    doc.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(doc, text)
 
 
 def main(argv=None) -> int:
@@ -152,9 +153,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from jmocap.evaluate import (
-        METHODS,
         EvalConfig,
         evaluate,
+        method_names,
         resolve_params,
         select_clips,
         write_outputs,
@@ -165,7 +166,7 @@ def main(argv=None) -> int:
     ensure_archive(archive, n, args.workers)
     t0 = time.perf_counter()
     params, base, source = resolve_params(args)
-    methods = tuple(args.methods or METHODS)
+    methods = tuple(args.methods or method_names())
     clips = select_clips(archive, args.max_clips, args.seed)
     walk = walking_clip(clips)
     config = EvalConfig(methods, args.batch_size, args.max_clips, args.seed, True, args.max_frames)

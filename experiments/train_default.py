@@ -8,14 +8,13 @@
 2. Runs the staged training of the config (resumable: re-running continues from
    runs/default/checkpoint.msgpack; progress in runs/default/log.jsonl).
 3. With --ship, writes the result to src/jmocap/assets/default_params.msgpack (float16) and
-   the config next to it (the training CycleConfig with the config's ``ship_cycle`` changes),
+   the config next to it (the training PhysCapConfig with the config's ``ship_cycle`` changes),
    which `jmocap.weights.default_params()` loads.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import shutil
 import subprocess
@@ -44,7 +43,7 @@ def main(argv=None):
     config = TrainConfig.from_json(json.loads(Path(args.config).read_text()))
     params = train(config)
     if args.ship:
-        shipped = dataclasses.replace(config.cycle, **config.ship_cycle)
+        shipped = config.cycle.replace(**config.ship_cycle)
         ship_params(params, shipped, source=args.config)
         shutil.copy(args.config, ROOT / "src/jmocap/assets/default_train_config.json")
         print("shipped default weights to src/jmocap/assets/")
