@@ -255,7 +255,7 @@ def cmd_render(args) -> int:
     try:
         paths = render_result(args.result, args.out, plots=args.plots, size=args.size,
                               side=not args.no_side, quality=args.quality)
-    except (ValueError, FileNotFoundError, RenderError) as e:
+    except (ValueError, FileNotFoundError, RenderError, ImportError) as e:  # ImportError: no viz extra
         print(f"jmocap render: {e}", file=sys.stderr)
         return 1
     print("jmocap render: wrote " + ", ".join(str(p) for p in paths))

@@ -26,8 +26,9 @@ def atomic_writer(path: str | os.PathLike, mode: str = "wb", *, suffix: str = ".
     """Open a temporary file next to ``path`` for writing; on a clean exit it is flushed,
     fsynced and renamed to ``path``; on an exception it is removed and ``path`` is untouched.
     ``suffix`` is the temporary file's suffix (writers that pick a format by file name, such
-    as video encoders, need the real one)."""
+    as video encoders, need the real one). The destination's folder is created if missing."""
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
     try:
         with os.fdopen(fd, mode) as f:
@@ -46,6 +47,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """A temporary path next to ``path`` (same suffix) for writers that open files by name
     (matplotlib, video encoders); renamed to ``path`` on a clean exit, removed otherwise."""
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:

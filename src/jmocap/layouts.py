@@ -8,7 +8,7 @@ orders them, and a parallel tuple of the model sites that produce each joint:
 * ``h36m17``: the 17 Human3.6M joints used by VideoPose3D / most lifting work
   (pelvis, right leg, left leg, spine, thorax, neck/nose, head, left arm, right arm).
 
-Site names are those of ``models/mjcf/humanoid.xml``; ``tests/test_model.py`` checks that
+Site names are those of ``jmocap/assets/mjcf/humanoid.xml``; ``tests/test_model.py`` checks that
 every site named here exists in the model.
 """
 
