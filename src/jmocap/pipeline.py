@@ -4,9 +4,16 @@ sharded over the local devices.
 :func:`reconstruct_chunk` runs one fixed-length chunk of one clip with the method's state carried
 in and out, so a clip of any length runs in bounded memory as a sequence of chunks;
 :func:`reconstruct_chunks` is its ``jax.jit(jax.vmap(...))`` over a batch of clips (one
-compilation per method, config structure and chunk shape; the config's traced parameters and
-the characters are arguments). :class:`Reconstructor` groups clips of equal chunk plans and
-shards each batch over every local device.
+compilation per method, config and chunk shape; the characters are arguments).
+:class:`Reconstructor` groups clips of equal chunk plans and shards each batch over every local
+device.
+
+An archive run has one config, so the engine compiles it in: the config's traced parameters
+(gains, friction, ...) become constants of the program, which XLA may fold. This is the fastest
+form, and it keeps batch results bit-identical to those made before the parameters became
+traceable (``methods.<name>.reconstruct`` under a user's ``jax.jit`` traces them instead: the two
+agree to float32 rounding). Use the methods' functions directly to change or differentiate
+the parameters without recompiling.
 
 Chunking is exact. A method needs ``method.history(config)`` frames of keypoints before a chunk
 (TPNet's receptive field: C_T reads a window of per-frame features that include C_P's pose,
@@ -63,14 +70,20 @@ def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry, first, co
     return carry, ChunkResult(motion, kp3d)
 
 
-@partial(jax.jit, static_argnames=("method", "history"))
-def reconstruct_chunks(params, models: Model, inputs: ClipInputs, carry, first, config, *, method: str,
+@partial(jax.jit, static_argnames=("config", "method", "history"))
+def reconstruct_chunks(params, models: Model, inputs: ClipInputs, carry, first, *, config, method: str,
                        history: int) -> tuple[Any, ChunkResult]:
     """:func:`reconstruct_chunk` over a batch of clips (leading axis of everything but
-    ``params`` and ``config``)."""
+    ``params``); ``config`` is compiled in (hashable: Python numbers, see :func:`constant_config`)."""
     return jax.vmap(
         lambda m, i, c, f: reconstruct_chunk(params, m, i, c, f, config, method=method, history=history)
     )(models, inputs, carry, first)
+
+
+def constant_config(config):
+    """``config`` with every traced leaf as a Python number (hashable, so it can be a static jit
+    argument and is compiled in as constants)."""
+    return jax.tree.map(lambda x: float(np.asarray(x)) if np.ndim(x) == 0 else x, config)
 
 
 def chunk_plan(num_frames: int, chunk: int, bucket: int) -> tuple[int, ...]:
@@ -140,9 +153,8 @@ class Reconstructor:
         self.devices = list(devices) if devices is not None else jax.devices()
         mesh = Mesh(np.array(self.devices), ("clips",))
         self._rows = NamedSharding(mesh, PartitionSpec("clips"))
-        replicated = NamedSharding(mesh, PartitionSpec())
-        self.params = jax.device_put(params, replicated)
-        self._config = jax.device_put(config, replicated)
+        self.params = jax.device_put(params, NamedSharding(mesh, PartitionSpec()))
+        self._config = constant_config(config)
         self.group_size = self.batch * len(self.devices)
         self.history = self.method.history(config)
 
@@ -194,7 +206,7 @@ class Reconstructor:
             )
             carry, res = reconstruct_chunks(
                 self.params, models, whole.replace(keypoints=keypoints, mask=mask), carry, first,
-                self._config, method=self.method.name, history=H,
+                config=self._config, method=self.method.name, history=H,
             )
             if pending is not None:  # fetch the previous chunk while this one runs
                 fetched.append(_fields(jax.device_get(pending)))
@@ -219,6 +231,7 @@ __all__ = [
     "Reconstructor",
     "chunk_frames",
     "chunk_plan",
+    "constant_config",
     "reconstruct_chunk",
     "reconstruct_chunks",
     "subject_height",
