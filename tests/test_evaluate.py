@@ -131,6 +131,22 @@ def test_evaluate_motion_of_the_ground_truth(clips):
         M.evaluate_motion(c, q=c.gt_q[:5])
 
 
+def test_evaluate_motion_of_a_known_perturbation(clips):
+    """The ground truth moved 30 mm along x and 40 mm along y (hand-worked: every joint and the
+    root 50 mm off, the pose itself unchanged) and its forces scaled by 1.1 (an error of 10 % of
+    the true force)."""
+    c = clips[1]
+    q = np.array(c.gt_q)
+    q[:, 0] += 0.03
+    q[:, 1] += 0.04
+    r = M.evaluate_motion(c, q=q, grf=1.1 * c.gt_grf, model=E.subject_model(c))
+    assert r["mpjpe_abs_mm"] == pytest.approx(50.0, abs=0.05)
+    assert r["root_err_mm"] == pytest.approx(50.0, abs=0.05)
+    assert r["mpjpe_mm"] == pytest.approx(0.0, abs=1e-2) and r["pa_mpjpe_mm"] == pytest.approx(0.0, abs=0.05)
+    exact = M.evaluate_motion(c, q=c.gt_q, grf=c.gt_grf, model=E.subject_model(c))
+    assert r["grf_err_pct_bw"] == pytest.approx(0.1 * exact["grf_mean_pct_bw"], rel=1e-3)
+
+
 def test_cli_rejects_bad_arguments(archive, tmp_path, capsys):
     assert main(["eval", str(archive), "--random-init", "--methods", "bogus", "--out", str(tmp_path)]) == 1
     assert "unknown method 'bogus'" in capsys.readouterr().err
