@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 from jmocap import evaluate as E
+from jmocap import methods
 from jmocap import metrics as M
 from jmocap.cli import main
-from jmocap import methods
-from jmocap.methods import PhysCapConfig
 from jmocap.data.archive import ArchiveWriter
 from jmocap.data.synthetic import SynthConfig, generate_clip
+from jmocap.methods import PhysCapConfig
 
 
 @pytest.fixture(scope="module")

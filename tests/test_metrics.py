@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 
 from jmocap import metrics as M
-from jmocap.camera import Camera
-from jmocap.camera import default_extrinsics
+from jmocap.camera import Camera, default_extrinsics
 
 TOL = 1e-3
 

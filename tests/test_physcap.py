@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from conftest import x64
-from jmocap import physics as P
 from jmocap import methods
+from jmocap import physics as P
 from jmocap.camera import Camera, canonicalise, default_extrinsics, project
 from jmocap.inputs import ClipInputs
 from jmocap.methods.physcap import CycleState, PhysCapConfig, init_params, reconstruct, simulate

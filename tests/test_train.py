@@ -17,9 +17,9 @@ import jax
 import numpy as np
 import pytest
 
-from jmocap.methods import PhysCapConfig
 from jmocap.data.clip import save_clip
 from jmocap.data.synthetic import SynthConfig, generate_clip
+from jmocap.methods import PhysCapConfig
 from jmocap.nets import NetConfig
 from jmocap.train import StageConfig, TrainConfig, TrainingSet, train
 from jmocap.weights import load_params

@@ -44,7 +44,7 @@ from jmocap.methods.physcap import CycleState, PhysCapConfig, init_params, simul
 from jmocap.methods.stages import body_weight, contact_probability, pd_error, target_pose
 from jmocap.model import Model, character
 from jmocap.physics.rotations import quat_to_mat
-from jmocap.weights import load_params, save_params
+from jmocap.weights import save_params
 
 NETS = ("tpnet", "dynet", "grfnet")
 STAGE_TRAINS = {

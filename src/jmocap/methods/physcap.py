@@ -26,7 +26,7 @@ from jmocap import physics as P
 from jmocap.constants import NUM_CONTACTS
 from jmocap.inputs import ClipInputs
 from jmocap.methods import stages as S
-from jmocap.methods.base import Method, register, register_variant, static, Variant
+from jmocap.methods.base import Method, Variant, register, register_variant, static
 from jmocap.methods.kinematic import KinematicConfig, history
 from jmocap.methods.kinematic import init_params as init_tpnet_params
 from jmocap.model import Model

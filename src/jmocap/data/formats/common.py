@@ -13,7 +13,6 @@ The underscore names are shared by the format modules of this package only.
 from __future__ import annotations
 
 import json
-import os
 import pickle
 import zipfile
 import zlib
