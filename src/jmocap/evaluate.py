@@ -52,6 +52,7 @@ from jmocap.inputs import ClipInputs
 from jmocap.io import atomic_write
 from jmocap.model import Model, character
 from jmocap.pipeline import subject_model
+from jmocap.progress import Progress
 
 #: the reference row: the ground truth through the same metrics
 GROUND_TRUTH = "ground_truth"
@@ -221,8 +222,6 @@ def evaluate(
     (``q``, ``grf``, ``tau``, ``contact_prob``) are kept in ``result.motions[method][clip]``.
     Clips need ``gt_q`` and ``gt_keypoints3d`` (others are skipped and recorded as failures).
     """
-    from tqdm import tqdm
-
     base = methods_.config_dict(base or methods_.PhysCapConfig()) if not isinstance(base, dict) else base
     config = config or EvalConfig()
     for m in config.methods:
@@ -252,9 +251,9 @@ def evaluate(
 
     per_clip: dict[str, dict[str, dict[str, float]]] = {m: {} for m in config.methods}
     motions: dict[str, dict[str, dict[str, np.ndarray]]] = {}
-    bar = tqdm(total=len(config.methods) * len(batches), disable=not config.progress, unit="batch")
+    bar = Progress(len(config.methods) * len(batches), "eval", enabled=config.progress, unit="batch")
     for method in config.methods:
-        bar.set_description(method)
+        bar.set_label(method)
         cfg = method_config(base, method)
         m_params = params
         if method_params and method in method_params:
