@@ -1,8 +1,12 @@
-"""Shared fixtures: models are loaded once per session; x64 is switched on per module."""
+"""Shared fixtures and the suite's one persistent compilation cache; x64 is switched on per test."""
 
 from __future__ import annotations
 
 import contextlib
+import gc
+import os
+import tempfile
+import warnings
 from pathlib import Path
 
 import jax
@@ -54,28 +58,80 @@ def random_configurations(mj: mujoco.MjModel, n: int, seed: int = 0):
     return np.stack(qs), np.stack(qds)
 
 
-@pytest.fixture(scope="module")
-def xla_cache(tmp_path_factory):
-    """A persistent compilation cache for one test module (and the subprocesses it starts):
-    programs compiled again under other Python functions, or in another process, are reused."""
+# ---- one persistent compilation cache for the whole suite ------------------------------
+#
+# Tests in different modules (and the CLI subprocesses some of them start) compile the same
+# programs under different Python functions; only jax's persistent, HLO-keyed cache can share
+# them, and across runs it turns most of the suite's compile time into file reads.  One
+# directory serves the whole session: $JMOCAP_TEST_XLA_CACHE if set, else
+# .pytest_cache/d/xla (removed by `make clean`), else (no cache plugin) a temporary directory.
+# pytest-xdist workers share it: an entry is written once per key, zlib-compressed, so a read
+# racing a write fails to decompress (checksum) and jax recompiles with a warning.
+
+XLA_CACHE_ENV = "JMOCAP_TEST_XLA_CACHE"
+_SUITE_CACHE: dict[str, str] = {}
+
+
+def _configure_compilation_cache(path: str) -> None:
     from jax.experimental.compilation_cache import compilation_cache
 
-    path = str(tmp_path_factory.mktemp("xla_cache"))
-    old = jax.config.jax_compilation_cache_dir
     jax.config.update("jax_compilation_cache_dir", path)
+    # cache every program that took noticeable time (default 1 s): the suite is mostly
+    # sub-second compiles of small jitted checks, which a second run then reads back
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     compilation_cache.reset_cache()
-    yield path
-    jax.config.update("jax_compilation_cache_dir", old)
-    compilation_cache.reset_cache()
+
+
+def pytest_configure(config):
+    path = os.environ.get(XLA_CACHE_ENV)
+    if not path:
+        cache = getattr(config, "cache", None)
+        path = str(cache.mkdir("xla")) if cache is not None else tempfile.mkdtemp(prefix="jmocap-xla-")
+    Path(path).mkdir(parents=True, exist_ok=True)
+    _SUITE_CACHE["path"] = path
+    _configure_compilation_cache(path)
+
+
+@pytest.fixture(scope="session")
+def xla_cache() -> str:
+    """The suite's persistent compilation cache directory (pass it to CLI subprocesses as
+    ``--cache-dir`` so that they share the suite's compiled programs)."""
+    return _SUITE_CACHE["path"]
+
+
+# ---- compiled programs are freed after each module --------------------------------------
+#
+# Every live compiled program keeps about three memory mappings (its code, read-only data and
+# data pages).  jax keeps every program it compiled, so one process running the whole suite
+# (~20k programs) reached Linux's per-process limit vm.max_map_count (65530); the next compile
+# then failed to map memory ("LLVM compilation error: Cannot allocate memory") and XLA's CPU
+# compiler segfaulted instead of raising (jax/jaxlib 0.10.2; reproducer and numbers in
+# docs/performance.md).  Dropping jax's in-memory caches after each module bounds the count
+# by the largest module; programs a later module needs again come back from the persistent
+# cache above.
+
+
+def _memory_mappings() -> tuple[int, int] | None:
+    """(mappings of this process, the system's limit), or None where /proc is not there."""
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            n = sum(1 for _ in f)
+        return n, int(Path("/proc/sys/vm/max_map_count").read_text())
+    except (OSError, ValueError):
+        return None
 
 
 @pytest.fixture(autouse=True, scope="module")
-def _no_persistent_compilation_cache():
-    """CLI commands run in-process switch on jax's persistent compilation cache (their
-    ``--cache-dir`` default); keep that from leaking into later test modules."""
+def _module_boundary():
+    """After each module: free its compiled programs, and put the suite's compilation cache
+    back if a CLI command run in-process pointed jax elsewhere (its ``--cache-dir``)."""
     yield
-    if jax.config.jax_compilation_cache_dir:
-        from jax.experimental.compilation_cache import compilation_cache
-
-        jax.config.update("jax_compilation_cache_dir", None)
-        compilation_cache.reset_cache()
+    jax.clear_caches()
+    gc.collect()
+    maps = _memory_mappings()
+    if maps is not None and maps[0] > maps[1] // 2:
+        warnings.warn(f"{maps[0]} memory mappings after freeing compiled programs (limit "
+                      f"{maps[1]}): something keeps compiled programs alive across modules",
+                      stacklevel=1)
+    if jax.config.jax_compilation_cache_dir != _SUITE_CACHE["path"]:
+        _configure_compilation_cache(_SUITE_CACHE["path"])

@@ -48,13 +48,6 @@ def _x64(enable: bool = True):
         jax.config.update("jax_enable_x64", old)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _compilation_cache(xla_cache):
-    """This module's tests compile the same solver programs under different Python functions,
-    which only an HLO-keyed (persistent) cache can share."""
-    yield
-
-
 @pytest.fixture
 def x64():
     with _x64():
