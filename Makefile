@@ -22,20 +22,23 @@ wheel-smoke:
 demo: $(STAMP)
 	$(PY) -m jmocap.cli demo --out demo_out
 
-# One pytest process per test file: a long single process crashed (segfault inside XLA's CPU
-# compiler, in tests/test_qp.py after ~200 tests) where the same file passes on its own.
-# Exit status 5 (every test of a file deselected, e.g. all slow) is not a failure.
+# One pytest invocation for the whole suite, on PYTEST_WORKERS pytest-xdist workers (one per
+# core; each takes whole files, so a module's fixtures and compiled programs stay in one
+# process). tests/conftest.py gives every worker one persistent compilation cache
+# (.pytest_cache/d/xla, or $JMOCAP_TEST_XLA_CACHE) and frees compiled programs after each module:
+# a single long process used to run out of memory mappings (vm.max_map_count) and segfault in
+# XLA's CPU compiler (docs/performance.md, section 5). PYTEST_WORKERS=0 runs in this process.
+PYTEST_WORKERS ?= 2
+PYTEST := $(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
+
 test: $(STAMP)
-	@status=0; for f in tests/test_*.py; do \
-	  $(PY) -m pytest -q $$f; rc=$$?; \
-	  if [ $$rc -ne 0 ] && [ $$rc -ne 5 ]; then status=1; echo "FAILED: $$f (exit $$rc)"; fi; \
-	done; exit $$status
+	$(PYTEST)
 
 test-slow: $(STAMP)
-	$(PY) -m pytest -q -m slow
+	$(PYTEST) -m slow
 
 test-all: $(STAMP)
-	$(PY) -m pytest -q -m 'slow or not slow'
+	$(PYTEST) -m 'slow or not slow'
 
 lint: $(STAMP)
 	$(PY) -m pip install --quiet ruff

@@ -18,6 +18,7 @@ Tolerances (float64 unless stated):
 from __future__ import annotations
 
 import contextlib
+import functools
 import itertools
 
 import jax
@@ -72,15 +73,25 @@ def _kkt(W, G, v, lower, x, lam):
     return stat, primal, dual, comp
 
 
+# The default-suite tests share one problem size and batch (n = 62 DoFs, BATCH instances), so
+# that each (m, method) program compiles once for all of them.
+N_DOF = 62
+BATCH = 32
+
+
+@functools.cache
+def _batched_solver(method, iters):
+    return jax.jit(jax.vmap(lambda a, b, c, d: solve_projection_info(a, b, c, d, method=method,
+                                                                     iters=iters)))
+
+
 def _solve_batch(insts, method="auto", iters=None):
     W, Winv, G, v, lower = _stack(insts)
-    f = jax.jit(jax.vmap(lambda a, b, c, d: solve_projection_info(a, b, c, d, method=method,
-                                                                  iters=iters)))
-    info = f(Winv, G, v, lower)
+    info = _batched_solver(method, iters)(Winv, G, v, lower)
     return jax.tree.map(np.asarray, info)
 
 
-def _compare_with_clarabel(n_per_group, seed, sizes=(47, 62)):
+def _compare_with_clarabel(n_per_group, seed, sizes=(47, N_DOF)):
     rng = np.random.default_rng(seed)
     worst = dict(err=0.0, stat=0.0, primal=0.0, dual=0.0, comp=0.0)
     statuses = {}
@@ -118,7 +129,7 @@ def _compare_with_clarabel(n_per_group, seed, sizes=(47, 62)):
 
 
 def test_matches_clarabel(x64):
-    _compare_with_clarabel(n_per_group=32, seed=0, sizes=(62,))  # 96 instances
+    _compare_with_clarabel(n_per_group=BATCH, seed=0, sizes=(N_DOF,))  # 96 instances
 
 
 @pytest.mark.slow
@@ -132,13 +143,13 @@ def test_matches_clarabel_many(x64):
 def test_feasible_v_is_returned_bitwise(x64):
     rng = np.random.default_rng(3)
     for m in (4, 8, 16):
-        insts = [random_instance(rng, 47, m, feasible_at_v=True) for _ in range(8)]
+        insts = [random_instance(rng, N_DOF, m, feasible_at_v=True) for _ in range(BATCH)]
         # some rows exactly tight at v (boundary, lambda = 0), and all rows disabled in one
-        for inst in insts[:4]:
+        for inst in insts[: BATCH // 2]:
             _, _, G, v, lower = inst
             tight = rng.random(m) < 0.5
             lower[:] = np.where(tight & np.isfinite(lower), G @ v, lower)
-        insts[4][4][:] = -np.inf
+        insts[BATCH // 2][4][:] = -np.inf
         info = _solve_batch(insts)
         v = np.stack([inst[3] for inst in insts])
         assert np.array_equal(info.x, v)
@@ -148,7 +159,7 @@ def test_feasible_v_is_returned_bitwise(x64):
 def test_resolving_from_the_solution_returns_it(x64):
     rng = np.random.default_rng(4)
     for m in (4, 8, 16):
-        insts = [random_instance(rng, 62, m, feasible_at_v=False) for _ in range(8)]
+        insts = [random_instance(rng, N_DOF, m, feasible_at_v=False) for _ in range(BATCH)]
         info = _solve_batch(insts)
         again = _solve_batch([(W, Wi, G, x, lo) for (W, Wi, G, _, lo), x in zip(insts, info.x,
                                                                                 strict=True)])
