@@ -7,7 +7,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.jmocap-installed
 
-.PHONY: demo test test-slow test-all lint bench clean wheel-smoke
+.PHONY: demo test test-slow test-all lint bench clean clean-cache wheel-smoke
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -25,7 +25,7 @@ demo: $(STAMP)
 # One pytest invocation for the whole suite, on PYTEST_WORKERS pytest-xdist workers (one per
 # core; each takes whole files, so a module's fixtures and compiled programs stay in one
 # process). tests/conftest.py gives every worker one persistent compilation cache
-# (.pytest_cache/d/xla, or $JMOCAP_TEST_XLA_CACHE) and frees compiled programs after each module:
+# (~/.cache/jmocap/xla-tests, or $JMOCAP_TEST_XLA_CACHE) and frees compiled programs after each module:
 # a single long process used to run out of memory mappings (vm.max_map_count) and segfault in
 # XLA's CPU compiler (docs/performance.md, section 5). PYTEST_WORKERS=0 runs in this process.
 PYTEST_WORKERS ?= 2
@@ -51,3 +51,7 @@ bench: $(STAMP)
 
 clean:
 	rm -rf $(VENV) .pytest_cache
+
+# the test suite's persistent XLA compilation cache (kept across clones: tests/conftest.py)
+clean-cache:
+	rm -rf "$${XDG_CACHE_HOME:-$$HOME/.cache}/jmocap/xla-tests"

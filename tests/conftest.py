@@ -63,8 +63,11 @@ def random_configurations(mj: mujoco.MjModel, n: int, seed: int = 0):
 # Tests in different modules (and the CLI subprocesses some of them start) compile the same
 # programs under different Python functions; only jax's persistent, HLO-keyed cache can share
 # them, and across runs it turns most of the suite's compile time into file reads.  One
-# directory serves the whole session: $JMOCAP_TEST_XLA_CACHE if set, else
-# .pytest_cache/d/xla (removed by `make clean`), else (no cache plugin) a temporary directory.
+# directory serves the whole session: $JMOCAP_TEST_XLA_CACHE if set, else the user's cache
+# folder ($XDG_CACHE_HOME or ~/.cache)/jmocap/xla-tests, beside the CLI's own cache
+# (~/.cache/jmocap/xla), so that a fresh clone on a machine that ran the suite before starts
+# warm (jax keys every entry by the program, the compile options and the jax/jaxlib versions,
+# so an entry is never reused for another program or version; `make clean-cache` empties it).
 # pytest-xdist workers share it: an entry is written once per key, zlib-compressed, so a read
 # racing a write fails to decompress (checksum) and jax recompiles with a warning.
 
@@ -82,12 +85,18 @@ def _configure_compilation_cache(path: str) -> None:
     compilation_cache.reset_cache()
 
 
+def user_cache_dir() -> Path:
+    """($XDG_CACHE_HOME or ~/.cache)/jmocap/xla-tests."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "jmocap" / "xla-tests"
+
+
 def pytest_configure(config):
-    path = os.environ.get(XLA_CACHE_ENV)
-    if not path:
-        cache = getattr(config, "cache", None)
-        path = str(cache.mkdir("xla")) if cache is not None else tempfile.mkdtemp(prefix="jmocap-xla-")
-    Path(path).mkdir(parents=True, exist_ok=True)
+    path = os.environ.get(XLA_CACHE_ENV) or str(user_cache_dir())
+    try:
+        Path(path).mkdir(parents=True, exist_ok=True)
+    except OSError:  # a read-only home: a cache for this run only
+        path = tempfile.mkdtemp(prefix="jmocap-xla-")
     _SUITE_CACHE["path"] = path
     _configure_compilation_cache(path)
 

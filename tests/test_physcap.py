@@ -180,6 +180,7 @@ def test_hard_constraint_prevents_penetration(model):
 
     def min_height(cfg):
         _, out = jax.jit(simulate)(params, model, q_hat, prob, jnp.ones(T, bool), 30.0, cfg, init=init)
+        assert not np.any(np.asarray(out.grf)) and not np.any(np.asarray(out.steps.grf_raw))  # use_grfnet=False
         h = jax.vmap(lambda q: P.contact_points(model, q)[1])(out.q)
         return float(jnp.min(h))
 
