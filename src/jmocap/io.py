@@ -22,33 +22,15 @@ _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
 
 @contextlib.contextmanager
-def atomic_writer(path: str | os.PathLike, mode: str = "wb", *, suffix: str = ".tmp") -> Iterator[IO]:
-    """Open a temporary file next to ``path`` for writing; on a clean exit it is flushed,
-    fsynced and renamed to ``path``; on an exception it is removed and ``path`` is untouched.
-    ``suffix`` is the temporary file's suffix (writers that pick a format by file name, such
-    as video encoders, need the real one). The destination's folder is created if missing."""
+def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+    """A temporary path next to ``path`` for writers that open files by name (matplotlib, video
+    encoders; ``suffix`` defaults to ``path``'s own, which they read the format from, named
+    ``.<name>.<random><suffix>``); on a clean exit it is fsynced and renamed to ``path``, on an
+    exception removed (``path`` untouched). The destination's folder is created if missing."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
-    try:
-        with os.fdopen(fd, mode) as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-
-
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """A temporary path next to ``path`` (same suffix) for writers that open files by name
-    (matplotlib, video encoders); renamed to ``path`` on a clean exit, removed otherwise."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix if suffix is None else suffix,
+                               dir=path.parent)
     os.close(fd)
     try:
         yield Path(tmp)
@@ -59,6 +41,15 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+@contextlib.contextmanager
+def atomic_writer(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
+    """Open a temporary file next to ``path`` for writing; on a clean exit it is flushed,
+    fsynced and renamed to ``path``; on an exception it is removed and ``path`` is untouched.
+    The temporary file is ``.<name>.<random>.tmp``."""
+    with atomic_path(path, ".tmp") as tmp, open(tmp, mode) as f:
+        yield f
 
 
 def atomic_write(path: str | os.PathLike, data: bytes | str) -> Path:
