@@ -58,6 +58,19 @@ def random_configurations(mj: mujoco.MjModel, n: int, seed: int = 0):
     return np.stack(qs), np.stack(qds)
 
 
+def central_diff(f, x, eps: float = 1e-6):
+    """Jacobian of a numpy-valued ``f`` at ``x`` (float64) by central differences, shaped
+    (out..., in...): the finite-difference reference of the gradient tests."""
+    x = np.asarray(x, np.float64)
+    cols = []
+    for i in range(x.size):
+        dx = np.zeros(x.size)
+        dx[i] = eps
+        dx = dx.reshape(x.shape)
+        cols.append((np.asarray(f(x + dx)) - np.asarray(f(x - dx))) / (2 * eps))
+    return np.stack(cols, -1).reshape(np.shape(f(x)) + x.shape)
+
+
 # ---- one persistent compilation cache for the whole suite ------------------------------
 #
 # Tests in different modules (and the CLI subprocesses some of them start) compile the same

@@ -3,7 +3,7 @@ central finite differences and hand-derived derivatives, at the singular points 
 exist for (zero vectors, zero denominators, theta = 0).
 
 Tolerances (float64): VALUE_TOL 1e-15 relative for values numpy computes the same way;
-FD_TOL 1e-8 for central differences with step FD_EPS 1e-6 (truncation ~eps^2 * f''' ~ 1e-12,
+FD_TOL 1e-8 for central differences with step 1e-6 (conftest.central_diff) (truncation ~eps^2 * f''' ~ 1e-12,
 rounding ~1e-16 / eps ~ 1e-10).  At the singular points the gradient is compared exactly with
 its defined value (0), and asserted finite in both modes.
 """
@@ -15,26 +15,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from conftest import central_diff
 from jmocap.numerics import safe_div, safe_norm, safe_normalize, sinc_half
 
 VALUE_TOL = 1e-15
 ULP4 = 4e-16  # a few float64 roundings of a value in [0.25, 1)
-FD_EPS = 1e-6
 FD_TOL = 1e-8
 
 pytestmark = pytest.mark.usefixtures("enable_x64")
-
-
-def central_diff(f, x, eps=FD_EPS):
-    """Jacobian of a numpy-valued f at x (float64) by central differences: (out..., in...)."""
-    x = np.asarray(x, np.float64)
-    cols = []
-    for i in range(x.size):
-        dx = np.zeros(x.size)
-        dx[i] = eps
-        dx = dx.reshape(x.shape)
-        cols.append((np.asarray(f(x + dx)) - np.asarray(f(x - dx))) / (2 * eps))
-    return np.stack(cols, -1).reshape(np.shape(f(x)) + x.shape)
 
 
 def both_jacobians(f, x):

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from conftest import central_diff
 from jmocap.physics.rotations import (
     axis_angle_to_mat,
     mat_to_quat,
@@ -30,7 +31,6 @@ from jmocap.physics.rotations import (
 )
 
 MJ_TOL = 1e-14
-FD_EPS = 1e-6
 FD_TOL = 1e-8
 
 pytestmark = pytest.mark.usefixtures("enable_x64")
@@ -54,17 +54,6 @@ def mj(fn, out_size, *args):
     res = np.zeros(out_size)
     fn(res, *args)
     return res
-
-
-def central_diff(f, x, eps=FD_EPS):
-    x = np.asarray(x, np.float64)
-    cols = []
-    for i in range(x.size):
-        dx = np.zeros(x.size)
-        dx[i] = eps
-        dx = dx.reshape(x.shape)
-        cols.append((np.asarray(f(x + dx)) - np.asarray(f(x - dx))) / (2 * eps))
-    return np.stack(cols, -1).reshape(np.shape(f(x)) + x.shape)
 
 
 # ----------------------------------------------------------------------------- values vs MuJoCo
