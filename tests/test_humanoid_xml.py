@@ -192,6 +192,17 @@ def test_option(model):
     np.testing.assert_array_equal(model.opt.gravity, [0, 0, -9.81])
 
 
+def test_friction_model_is_the_one_named_in_constants(model):
+    """One friction model (jmocap.constants): every collision geom's sliding friction is
+    FRICTION_MU and the cone is MuJoCo's pyramidal one, which the estimators linearise alike."""
+    from jmocap.constants import FRICTION_CONE, FRICTION_MU
+
+    assert FRICTION_CONE == "pyramidal"
+    assert model.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
+    colliding = (model.geom_contype != 0) | (model.geom_conaffinity != 0)
+    np.testing.assert_allclose(model.geom_friction[colliding, 0], FRICTION_MU)
+
+
 # ---- mass properties --------------------------------------------------------------------
 
 

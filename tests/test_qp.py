@@ -30,6 +30,7 @@ from jax.test_util import check_grads
 from jmocap.physics import qp
 from jmocap.physics.qp import (
     friction_cone_loss,
+    friction_pyramid_edges,
     friction_pyramid_rows,
     project_friction_pyramid,
     solve_projection,
@@ -450,17 +451,22 @@ def test_friction_pyramid_projection_matches_clarabel(x64, facets):
         np.asarray(project(inside, np.array([0.0, 0, 1]), mu, facets=facets)), inside)
 
 
-def test_friction_pyramid_four_facets_is_the_box(x64):
+def test_friction_pyramid_four_facets_is_mujocos_pyramidal_cone(x64):
+    """Four facets: |f_x| + |f_y| <= mu f_z, the cone MuJoCo uses for condim 3 (edges n +- mu t)."""
     mu = 0.8
     C = np.asarray(friction_pyramid_rows(np.array([0.0, 0.0, 1.0]), mu, 4))
-    m = mu / np.sqrt(2)
-    np.testing.assert_allclose(C, [[-1, 0, m], [0, -1, m], [1, 0, m], [0, 1, m]], atol=1e-15)
-    # closed form on the floor: a force with f_n > 0 and a small tangential excess projects by
-    # clipping when the clip is the Euclidean projection (excess along one facet only)
-    f = np.array([2.0, 0.1, 1.0])
+    r = 1 / np.sqrt(2)
+    want = r * np.array([[-1, -1, mu], [1, -1, mu], [1, 1, mu], [-1, 1, mu]])
+    np.testing.assert_allclose(C, want, atol=1e-15)
+    E = np.asarray(friction_pyramid_edges(np.array([0.0, 0.0, 1.0]), mu, 4))
+    np.testing.assert_allclose(E, [[mu, 0, 1], [0, mu, 1], [-mu, 0, 1], [0, -mu, 1]], atol=1e-15)
+    # each edge lies on two facets and inside the others
+    CE = C @ E.T
+    assert np.all(CE > -1e-15) and np.all(np.sum(np.abs(CE) < 1e-15, axis=0) == 2)
+    # closed form on the floor: projection onto the facet x + y = mu z
+    f = np.array([2.0, 1.0, 1.0])
     p = np.asarray(project_friction_pyramid(f, np.array([0.0, 0, 1]), mu))
-    # projection onto the plane x = m z: move along (1, 0, -m) / |.|
-    a = np.array([1.0, 0.0, -m])
+    a = np.array([1.0, 1.0, -mu])
     want = f - (f @ a) / (a @ a) * a
     np.testing.assert_allclose(p, want, atol=1e-12)
 

@@ -717,7 +717,7 @@ def generate() -> str:
         mass=TOTAL_MASS, nq=nq, qpos=qpos, deleva="\n".join(deleva_table()))
     xml = [header.rstrip("\n"), '<mujoco model="jmocap_humanoid">',
            '  <compiler angle="radian" autolimits="true" inertiafromgeom="false"/>',
-           '  <option timestep="0.01" gravity="0 0 -9.81"/>',
+           '  <option timestep="0.01" gravity="0 0 -9.81" cone="pyramidal"/>',
            '  <statistic center="0 0 0.9" extent="2"/>',
            "",
            "  <default>",
@@ -728,7 +728,7 @@ def generate() -> str:
            f'    <joint type="hinge" armature="{ARMATURE}" damping="{fmt(DAMPING)}"/>',
            "    <!-- Collision: body geoms (contype 1, conaffinity 0) collide with the floor",
            "         (contype 0, conaffinity 1) only, never with each other. -->",
-           '    <geom contype="1" conaffinity="0" condim="3" friction="1 0.005 0.0001" rgba="0.8 0.62 0.48 1"/>',
+           '    <geom contype="1" conaffinity="0" condim="3" friction="0.8 0.005 0.0001" rgba="0.8 0.62 0.48 1"/>',
            '    <site size="0.012" group="3" rgba="0.1 0.4 0.9 1"/>',
            '    <default class="foot"><geom rgba="0.25 0.25 0.3 1"/></default>',
            '    <default class="contact"><site size="0.015" group="4" rgba="0.9 0.1 0.1 1"/></default>',

@@ -26,7 +26,19 @@ CONTACT_SITES: tuple[str, ...] = (
     "contact_right_toe",
 )
 
+#: the friction coefficient of every foot-floor contact, used by the simulator that makes the
+#: synthetic ground truth (the MJCF's floor ``friction``), the generator and every estimator
+FRICTION_MU: float = 0.8
+
+#: the friction cone's linearisation, the same everywhere: MuJoCo's ``pyramidal`` cone for
+#: ``condim=3`` (the MJCF's ``<option cone>``), whose four edges are ``n +- mu t1`` and
+#: ``n +- mu t2``; a force f is admissible when ``|f_t1| + |f_t2| <= mu f_n`` (inscribed in the
+#: Coulomb cone, touching it along the tangent axes). ``physics.friction_pyramid_edges`` /
+#: ``friction_pyramid_rows`` give its edge and facet forms.
+FRICTION_CONE: str = "pyramidal"
+
 #: number of foot contact points (the leading axis of a frame's GRF array, ``(4, 3)``)
 NUM_CONTACTS: int = len(CONTACT_SITES)
 
-__all__ = ["CONTACT_SITES", "DEFAULT_HEIGHT_M", "FLOOR_NORMAL", "GRAVITY", "NUM_CONTACTS"]
+__all__ = ["CONTACT_SITES", "DEFAULT_HEIGHT_M", "FLOOR_NORMAL", "FRICTION_CONE", "FRICTION_MU", "GRAVITY",
+           "NUM_CONTACTS"]

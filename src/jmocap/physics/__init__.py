@@ -32,7 +32,7 @@ from jmocap.physics.kinematics import (
     site_jacobian,
     site_positions,
 )
-from jmocap.physics.qp import solve_projection
+from jmocap.physics.qp import friction_pyramid_edges, friction_pyramid_rows, solve_projection
 
 __all__ = [
     "ContactPoints",
@@ -40,6 +40,8 @@ __all__ = [
     "contact_points",
     "foot_corner_points",
     "friction_cone_loss",
+    "friction_pyramid_edges",
+    "friction_pyramid_rows",
     "project_friction_pyramid",
     "project_velocity",
     "solve_projection",

@@ -93,6 +93,7 @@ import numpy as np
 from jax import lax
 from jax.custom_batching import custom_vmap
 
+from jmocap.constants import FRICTION_MU
 from jmocap.numerics import safe_div, safe_norm, safe_normalize
 from jmocap.physics.linalg import solve_lower, solve_upper
 
@@ -120,6 +121,7 @@ __all__ = [
     "ENUMERATE_MAX_M",
     "ProjectionInfo",
     "friction_cone_loss",
+    "friction_pyramid_edges",
     "friction_pyramid_rows",
     "project_friction_pyramid",
     "solve_projection",
@@ -495,7 +497,7 @@ def solve_projection(
 # ----------------------------------------------------------------------------- friction
 
 
-def friction_cone_loss(force, normal, mu=0.8):
+def friction_cone_loss(force, normal, mu=FRICTION_MU):
     """Paper eq. 10: theta^2 if theta > arctan(mu) else 0, theta = angle(normal, force).
 
     ``force`` (..., 3) and ``normal`` (..., 3) broadcast (the normal need not be unit length).
@@ -526,24 +528,44 @@ def tangent_basis(normal):
     return t1, t2
 
 
-def friction_pyramid_rows(normal, mu=0.8, facets: int = 4):
-    """Rows C (..., facets, 3) with the inscribed pyramid = {f : C f >= 0}.
-
-    Facet j has outward direction phi_j = 2 pi j / facets in the tangent plane (t1, t2) of
-    :func:`tangent_basis` and the constraint ``mu cos(pi/facets) f_n - cos(phi_j) f_t1 -
-    sin(phi_j) f_t2 >= 0``.  The pyramid's edges lie on the true cone |f_t| = mu f_n
-    (inscribed), so every force it admits satisfies eq. 9; for ``facets = 4`` this is
-    ``|f_t1| <= mu / sqrt(2) f_n, |f_t2| <= mu / sqrt(2) f_n`` (f_n >= 0 is implied).
-    """
+def _pyramid_angles(facets: int, offset: float):
     if facets < 3:
         raise ValueError(f"a friction pyramid needs at least 3 facets, got {facets}")
+    phi = offset + 2.0 * np.pi * np.arange(facets) / facets
+    cs, sn = np.cos(phi), np.sin(phi)
+    return np.where(np.abs(cs) < 1e-12, 0.0, cs), np.where(np.abs(sn) < 1e-12, 0.0, sn)
+
+
+def friction_pyramid_edges(normal, mu=FRICTION_MU, facets: int = 4):
+    """Edges E (..., facets, 3) of the friction pyramid: ``n + mu (cos phi_j t1 + sin phi_j t2)``,
+    ``phi_j = 2 pi j / facets``, in the tangent basis of :func:`tangent_basis`.
+
+    A force is admissible exactly when it is a non-negative combination ``f = E^T c, c >= 0`` of
+    the edges. For ``facets = 4`` these are MuJoCo's ``pyramidal`` cone edges ``n +- mu t1``,
+    ``n +- mu t2`` (jmocap's one friction model, :data:`jmocap.constants.FRICTION_CONE`).
+    """
+    n = safe_normalize(jnp.asarray(normal))
+    t1, t2 = tangent_basis(n)
+    cs, sn = _pyramid_angles(facets, 0.0)
+    mu = jnp.asarray(mu, n.dtype)[..., None, None]
+    return n[..., None, :] + mu * (jnp.asarray(cs, n.dtype)[:, None] * t1[..., None, :]
+                                   + jnp.asarray(sn, n.dtype)[:, None] * t2[..., None, :])
+
+
+def friction_pyramid_rows(normal, mu=FRICTION_MU, facets: int = 4):
+    """Rows C (..., facets, 3) with the inscribed pyramid = {f : C f >= 0}.
+
+    The facet form of :func:`friction_pyramid_edges`: facet j lies between edges j and j + 1 and
+    has outward direction ``phi_j = pi / facets + 2 pi j / facets`` in the tangent plane (t1, t2)
+    of :func:`tangent_basis`; its constraint is ``mu cos(pi/facets) f_n - cos(phi_j) f_t1 -
+    sin(phi_j) f_t2 >= 0``. The pyramid's edges lie on the true cone |f_t| = mu f_n
+    (inscribed), so every force it admits satisfies eq. 9; for ``facets = 4`` this is MuJoCo's
+    pyramidal cone ``|f_t1| + |f_t2| <= mu f_n`` (f_n >= 0 is implied).
+    """
     normal = jnp.asarray(normal)
     n = safe_normalize(normal)
     t1, t2 = tangent_basis(n)
-    phi = 2.0 * np.pi * np.arange(facets) / facets
-    cs, sn = np.cos(phi), np.sin(phi)
-    cs = np.where(np.abs(cs) < 1e-12, 0.0, cs)
-    sn = np.where(np.abs(sn) < 1e-12, 0.0, sn)
+    cs, sn = _pyramid_angles(facets, np.pi / facets)
     mu_eff = jnp.asarray(mu, n.dtype) * float(np.cos(np.pi / facets))
     cs = jnp.asarray(cs, n.dtype)
     sn = jnp.asarray(sn, n.dtype)
@@ -554,7 +576,7 @@ def friction_pyramid_rows(normal, mu=0.8, facets: int = 4):
     )
 
 
-def project_friction_pyramid(force, normal, mu=0.8, facets: int = 4):
+def project_friction_pyramid(force, normal, mu=FRICTION_MU, facets: int = 4):
     """Euclidean projection of contact forces (..., 3) onto the inscribed friction pyramid.
 
     Exact (the small QP ``min |f' - f|^2 s.t. C f' >= 0`` solved by :func:`solve_projection`
