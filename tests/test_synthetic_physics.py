@@ -1,13 +1,16 @@
 """The physics variant of the synthetic clips (``jmocap.data.synthetic.physics``): tracking a
-kinematic motion in MuJoCo C.
+kinematic motion in MuJoCo C, moved by contacts (and a rescue residual where recorded).
 
-References: the body weight (``mass * 9.81``) for the vertical ground reaction force of a
-standing subject, MuJoCo's ``mj_integratePos`` / ``mju_quat2Mat`` for consistency of the
-simulated positions, velocities and orientation.
+References: MuJoCo C itself -- the whole-body centre of mass (``subtree_com`` of the simulated
+``gt_q``), the simulation model's friction and cone, ``mj_integratePos`` for the consistency of
+positions and velocities -- and jmocap's one friction pyramid (``friction_pyramid_rows`` with
+``FRICTION_MU``), which is MuJoCo's pyramidal cone on the floor.
 
-Tolerances: standing GRF within 10 % of the weight (soft contacts and the tracking
-controller's small root residual); one-frame integration 2 mm (a 30 fps frame holds several
-simulation substeps, the stored qd is the frame's last).
+Tolerances: Newton's law 2 % of body weight per frame (the frame forces are the tent average
+that matches central differences exactly for linear coordinates; the centre of mass is a
+nonlinear function of q, which leaves an O(dt) discretisation error); friction cone 1e-3 N
+(float32 storage); CoP within 2 cm of the foot's sole footprint (the frame values average the
+substeps of +-1 frame, during which a rocking foot moves).
 """
 
 from __future__ import annotations
@@ -16,7 +19,12 @@ import mujoco
 import numpy as np
 import pytest
 
+from jmocap.constants import FRICTION_MU, GRAVITY
 from jmocap.data import synthetic as S
+from jmocap.data.synthetic.physics import lever_split, simulation_model, tent_average, tent_weights
+from jmocap.physics.qp import friction_pyramid_rows
+
+FRAMES = 75
 
 
 def _upright(quat):
@@ -29,27 +37,154 @@ def _upright(quat):
     return np.array(out)
 
 
+def _com(ch, q):
+    """Whole-body centre of mass (T, 3) by MuJoCo C (``subtree_com`` of the world body)."""
+    d = mujoco.MjData(ch.mj)
+    out = []
+    for x in np.asarray(q, np.float64):
+        d.qpos[:] = x
+        mujoco.mj_kinematics(ch.mj, d)
+        mujoco.mj_comPos(ch.mj, d)
+        out.append(d.subtree_com[0].copy())
+    return np.array(out)
+
+
+@pytest.fixture(scope="module", params=["walk", "run"])
+def clip(request):
+    return S.generate_clip(1, 0, S.SynthConfig(frames=FRAMES, kinds=(request.param,), physics=True))
+
+
+def _weight(clip):
+    return clip.mass_kg * GRAVITY
+
+
+def test_simulation_model_uses_the_one_friction_model():
+    ch = S.character(1.75)
+    mj = simulation_model(ch.mj, 0.002, 0.008)
+    assert mj.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
+    np.testing.assert_array_equal(mj.geom_friction[:, 0], FRICTION_MU)
+    # a contact on the floor: MuJoCo's contact frame has the floor normal and world-aligned
+    # tangents, so its pyramid is jmocap's friction_pyramid_rows(FLOOR_NORMAL)
+    d = mujoco.MjData(mj)
+    d.qpos[:] = ch.q_stand
+    d.qpos[2] -= 0.002
+    mujoco.mj_forward(mj, d)
+    assert d.ncon > 0
+    frame = d.contact.frame[0].reshape(3, 3)
+    np.testing.assert_allclose(frame[0], [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(np.sort(np.abs(frame[1:, :2]).ravel()), [0, 0, 1, 1], atol=1e-12)
+
+
+def test_tent_average_matches_central_differences():
+    # MuJoCo's semi-implicit step on a point: x' = x + h v', v' = v + h a
+    n, T = 5, 12
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=T * n)
+    h = 0.01
+    x, v, xs = 0.0, 0.3, []
+    for s in range(T * n):
+        if s % n == 0:
+            xs.append(x)
+        v += h * a[s]
+        x += h * v
+    xs = np.array(xs)
+    fd = (xs[2:] - 2 * xs[1:-1] + xs[:-2]) / (n * h) ** 2
+    np.testing.assert_allclose(tent_average(a, n)[1:-1], fd, atol=1e-9)
+    assert abs(tent_weights(n).sum() - 1.0) < 1e-12
+
+
+def test_lever_split_keeps_force_and_moment_on_the_axis():
+    heel, toe = np.array([0.0, 0.0, 0.0]), np.array([0.2, 0.0, 0.0])
+    pts = np.array([[0.05, 0.0, 0.0], [0.15, 0.0, 0.0]])
+    f = np.array([[1.0, 2.0, 300.0], [0.0, -1.0, 100.0]])
+    split = lever_split(pts, f, heel, toe)
+    np.testing.assert_allclose(split.sum(0), f.sum(0))
+    m = np.cross(np.stack([heel, toe]), split).sum(0)
+    np.testing.assert_allclose(m, np.cross(pts, f).sum(0), atol=1e-12)
+
+
+def test_newton_contacts_plus_residual_explain_the_com(clip):
+    ch = S.character(round(clip.height_m, 2))
+    c = _com(ch, clip.gt_q)
+    acc = (c[2:] - 2 * c[1:-1] + c[:-2]) * clip.fps ** 2
+    force = clip.gt_grf.sum(axis=1)[1:-1] + clip.gt_residual[1:-1, :3]
+    err = np.linalg.norm(force - clip.mass_kg * (acc + [0, 0, GRAVITY]), axis=1) / _weight(clip)
+    assert err.max() < 0.02, err.max()
+
+
+@pytest.mark.xfail(strict=True, reason="the kinematic reference is not dynamically feasible in parts "
+                   "of single support (docs/data.md): the rescue residual is on in 15-35 % of "
+                   "walking and running frames")
+def test_residual_zero_on_most_frames(clip):
+    assert np.mean(np.all(clip.gt_residual == 0, axis=1)) >= 0.95
+
+
+def test_forces_in_the_friction_pyramid(clip):
+    C = np.asarray(friction_pyramid_rows(np.array([0.0, 0.0, 1.0]), FRICTION_MU, 4), np.float64)
+    f = clip.gt_grf.astype(np.float64)
+    assert np.all(np.einsum("kj,tij->tik", C, f) >= -1e-3)
+    assert np.all(f[..., 2] >= -1e-3)
+
+
+def test_force_contact_labels(clip):
+    thr = clip.meta["contact_rule"]["min_vertical_force_bw"] * _weight(clip)
+    fz = clip.gt_grf[..., 2]
+    np.testing.assert_array_equal(clip.gt_contacts, (fz > thr).astype(np.float32))
+    off = clip.gt_contacts == 0
+    assert np.all(np.linalg.norm(clip.gt_grf[off], axis=-1) <= (1 + FRICTION_MU) * thr + 1e-3)
+    assert clip.gt_contacts.any()
+
+
+def test_per_foot_force_cop_free_moment(clip):
+    ch = S.character(round(clip.height_m, 2))
+    thr = clip.meta["contact_rule"]["min_vertical_force_bw"] * _weight(clip)
+    np.testing.assert_allclose(clip.gt_foot_force, clip.gt_grf.reshape(-1, 2, 2, 3).sum(2), atol=1e-2)
+    assert np.all(np.isfinite(clip.gt_free_moment)) and np.all(np.isfinite(clip.gt_cop))
+    np.testing.assert_array_equal(clip.gt_cop[..., 2], 0.0)
+    # CoP inside the foot's sole (the foot boxes' corners, MuJoCo C kinematics) when loaded
+    # (in stance: on this and both neighbouring frames, so the substeps averaged are in stance)
+    d = mujoco.MjData(ch.mj)
+    mj = ch.mj
+    loaded = clip.gt_foot_force[..., 2] > thr
+    stance = loaded.copy()
+    stance[1:-1] &= loaded[:-2] & loaded[2:]
+    assert stance[1:-1].any()
+    for t in range(1, clip.num_frames - 1):
+        d.qpos[:] = clip.gt_q[t]
+        mujoco.mj_kinematics(mj, d)
+        for f, L in enumerate(ch.legs):
+            if not stance[t, f]:
+                continue
+            heel, toe = d.site_xpos[ch.contact_sites[2 * f]], d.site_xpos[ch.contact_sites[2 * f + 1]]
+            ax = (toe - heel)[:2] / np.linalg.norm((toe - heel)[:2])
+            R2 = np.array([ax, [-ax[1], ax[0]]])
+            corners = []
+            for g in np.nonzero(np.isin(mj.geom_bodyid, [L.ankle_body, L.toe_body]))[0]:
+                R = d.geom_xmat[g].reshape(3, 3)
+                for s in np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T:
+                    corners.append(d.geom_xpos[g] + R @ (mj.geom_size[g] * s))
+            local = (np.array(corners)[:, :2] - heel[:2]) @ R2.T
+            cop = (clip.gt_cop[t, f, :2] - heel[:2]) @ R2.T
+            assert np.all(cop >= local.min(0) - 0.02) and np.all(cop <= local.max(0) + 0.02), (t, f)
+
+
 def test_physics_standing_grf_and_residual():
     clip = S.generate_clip(3, 0, S.SynthConfig(frames=45, kinds=("stand",), physics=True))
     ch = S.character(round(clip.height_m, 2))
-    weight = ch.mass * 9.81
+    weight = ch.mass * GRAVITY
     assert clip.gt_tau is not None and clip.gt_tau.shape == (45, ch.nv)
     assert clip.gt_grf.shape == (45, 4, 3)
     fz = clip.gt_grf[..., 2].sum(axis=1)
-    assert abs(fz.mean() / weight - 1.0) < 0.10
-    assert np.all(clip.gt_grf[..., 2] >= -1e-6)  # the floor only pushes
-    # upright, and residual reported (small when standing)
+    assert abs(fz.mean() / weight - 1.0) < 0.02
     assert np.all(_upright(clip.gt_q[:, 3:7]) > np.cos(np.radians(30)))
-    p = clip.meta["physics"]
-    for k in ("residual_force_mean", "residual_force_max", "residual_torque_mean"):
-        assert k in p
-    assert p["residual_force_mean"] < 0.05
-    res = np.linalg.norm(clip.gt_tau[:, :3], axis=1) / weight
-    assert abs(res.mean() - p["residual_force_mean"]) < 1e-3
+    # standing needs no residual: the root is moved by the contacts alone
+    np.testing.assert_array_equal(clip.gt_residual, 0.0)
+    np.testing.assert_array_equal(clip.gt_tau[:, :6], 0.0)
+    assert clip.meta["physics"]["residual_frames"] == 0
+    np.testing.assert_array_equal(clip.residual_percent_bw, 0.0)
     # velocities are the simulation's (consistent with the positions)
-    mj = ch.mj
     x = clip.gt_q[0].astype(np.float64).copy()
-    mujoco.mj_integratePos(mj, x, clip.gt_qd[0].astype(np.float64), 1.0 / clip.fps)
+    mujoco.mj_integratePos(ch.mj, x, clip.gt_qd[0].astype(np.float64), 1.0 / clip.fps)
     np.testing.assert_allclose(x[:3], clip.gt_q[1, :3], atol=2e-3)
 
 

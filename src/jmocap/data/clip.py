@@ -24,6 +24,11 @@ gt_keypoints3d        float32     (T, J, 3)   optional; world-frame joints in th
 gt_contacts           float32     (T, 4)      optional; {0, 1}: L heel, L toe, R heel, R toe
 gt_tau                float32     (T, nv)     optional; generalised forces
 gt_grf                float32     (T, 4, 3)   optional; world-frame force per contact point
+gt_residual           float32     (T, 6)      optional; root residual of a simulated clip: force
+                                              (world, N), torque (root body frame, N m)
+gt_foot_force         float32     (T, 2, 3)   optional; world-frame force per foot (left, right)
+gt_cop                float32     (T, 2, 3)   optional; centre of pressure per foot, on the floor
+gt_free_moment        float32     (T, 2)      optional; vertical torque per foot about its CoP (N m)
 height_m              float64     ()          optional; subject height in metres
 mass_kg               float64     ()          optional; subject mass in kilograms
 meta                  str         ()          JSON object (motion kind, seed, generator, ...)
@@ -45,14 +50,18 @@ from typing import Any
 
 import numpy as np
 
-from jmocap.constants import NUM_CONTACTS
+from jmocap.constants import GRAVITY, NUM_CONTACTS
 from jmocap.io import atomic_write_npz
 from jmocap.layouts import LAYOUTS, get_layout
 
 FORMAT = "jmocap-clip-1"
 
 # optional ground-truth fields: name -> (trailing shape, where None = free size to be checked)
-GT_FIELDS = ("gt_q", "gt_qd", "gt_keypoints3d", "gt_contacts", "gt_tau", "gt_grf")
+GT_FIELDS = ("gt_q", "gt_qd", "gt_keypoints3d", "gt_contacts", "gt_tau", "gt_grf", "gt_residual",
+             "gt_foot_force", "gt_cop", "gt_free_moment")
+# trailing shapes of the fixed-shape ground-truth fields
+_GT_SHAPES = {"gt_contacts": (NUM_CONTACTS,), "gt_grf": (NUM_CONTACTS, 3), "gt_residual": (6,),
+              "gt_foot_force": (2, 3), "gt_cop": (2, 3), "gt_free_moment": (2,)}
 _ARRAY_FIELDS = ("keypoints", "intrinsics", "image_size", "extrinsics") + GT_FIELDS
 
 
@@ -86,6 +95,10 @@ class Clip:
     gt_contacts: np.ndarray | None = None
     gt_tau: np.ndarray | None = None
     gt_grf: np.ndarray | None = None
+    gt_residual: np.ndarray | None = None
+    gt_foot_force: np.ndarray | None = None
+    gt_cop: np.ndarray | None = None
+    gt_free_moment: np.ndarray | None = None
     height_m: float | None = None
     mass_kg: float | None = None
     meta: dict[str, Any] = field(default_factory=dict)
@@ -116,6 +129,15 @@ class Clip:
     @property
     def has_ground_truth(self) -> bool:
         return self.gt_q is not None
+
+    @property
+    def residual_percent_bw(self) -> np.ndarray | None:
+        """Per frame (T,): the ground truth's root residual force in % of body weight (None
+        without ``gt_residual`` or ``mass_kg``); frames where it is > 0 are partly moved by a
+        force no person has, so metrics can exclude or report them."""
+        if self.gt_residual is None or self.mass_kg is None:
+            return None
+        return 100.0 * np.linalg.norm(self.gt_residual[:, :3], axis=1) / (self.mass_kg * GRAVITY)
 
     @property
     def camera(self):
@@ -313,15 +335,11 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
                 raise ClipFormatError(
                     f"{where}: field 'gt_keypoints3d' must have shape (T, {J}, 3), got {a.shape}"
                 )
-        elif key == "gt_contacts":
-            if a.shape[1:] != (4,):
+        elif key in _GT_SHAPES:
+            if a.shape[1:] != _GT_SHAPES[key]:
+                shape = ", ".join(["T"] + [str(n) for n in _GT_SHAPES[key]])
                 raise ClipFormatError(
-                    f"{where}: field 'gt_contacts' must have shape (T, 4), got {a.shape}"
-                )
-        elif key == "gt_grf":
-            if a.shape[1:] != (NUM_CONTACTS, 3):
-                raise ClipFormatError(
-                    f"{where}: field 'gt_grf' must have shape (T, 4, 3), got {a.shape}"
+                    f"{where}: field {key!r} must have shape ({shape}), got {a.shape}"
                 )
         _check_finite(a, key, where)
         if key == "gt_contacts":

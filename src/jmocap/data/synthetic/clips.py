@@ -106,15 +106,16 @@ def generate_clip(seed: int, index: int = 0, config: SynthConfig = SynthConfig()
             ch = motion.character
             meta: dict[str, Any] = {}
             q = motion.q
-            tau = grf = None
+            sim = {}
             if config.physics:
-                sim = simulate_tracking(ch, q, config.fps, motion.planted, config.physics_cfg)
-                q, qd, tau, grf = sim["q"], sim["qd"], sim["tau"], sim["grf"]
+                sim = simulate_tracking(ch, q, config.fps, config.physics_cfg)
+                q, qd = sim["q"], sim["qd"]
                 meta["physics"] = sim["stats"]
             else:
                 qd = velocities(ch.mj, q, config.fps)
             kp3d, contacts = _ground_truth(ch, q, layout, config.fps)
             if config.physics:
+                contacts = sim["contacts"]  # the force rule (docs/data.md)
                 heights = site_trajectories(ch, q, ch.check_sites)[..., 2]
                 meta["physics"]["min_site_height"] = float(heights.min())
             K, size, E, cam_info = sample_camera(rng, kp3d, config.camera)
@@ -142,8 +143,7 @@ def generate_clip(seed: int, index: int = 0, config: SynthConfig = SynthConfig()
             camera=_jsonable(cam_info),
             corruption=_jsonable(dataclasses.asdict(config.corruption)),
             corruption_stats=corr,
-            contact_rule=dict(max_step_m=CONTACT_MAX_STEP_M, max_height_m=CONTACT_MAX_HEIGHT_M,
-                              frame0="displacement to frame 1"),
+            contact_rule=_contact_rule(config),
             clean_keypoints2d="project gt_keypoints3d with intrinsics/extrinsics "
                               "(jmocap.data.synthetic.clean_keypoints2d)",
             kinematic=_jsonable({k: v for k, v in motion.info.items() if k in ("passes", "ik_err")}),
@@ -160,14 +160,27 @@ def generate_clip(seed: int, index: int = 0, config: SynthConfig = SynthConfig()
             gt_qd=qd,
             gt_keypoints3d=kp3d,
             gt_contacts=contacts,
-            gt_tau=tau,
-            gt_grf=grf,
+            gt_tau=sim.get("tau"),
+            gt_grf=sim.get("grf"),
+            gt_residual=sim.get("residual"),
+            gt_foot_force=sim.get("foot_force"),
+            gt_cop=sim.get("cop"),
+            gt_free_moment=sim.get("free_moment"),
             height_m=round(ch.height, 6),
             mass_kg=round(ch.mass, 6),
             meta=meta,
         )
     raise GenerationError(f"clip {index} (seed {seed}): no valid motion in {config.max_attempts} "
                           f"attempts: " + "; ".join(errors[-3:]))
+
+
+def _contact_rule(config: SynthConfig) -> dict:
+    """How ``gt_contacts`` was labelled: the force rule for simulated clips, Rempe et al.'s
+    geometric rule otherwise (docs/data.md)."""
+    if config.physics:
+        return dict(rule="force", min_vertical_force_bw=config.physics_cfg.contact_force_threshold)
+    return dict(rule="geometric", max_step_m=CONTACT_MAX_STEP_M, max_height_m=CONTACT_MAX_HEIGHT_M,
+                frame0="displacement to frame 1")
 
 
 def _kind_runs(kind):

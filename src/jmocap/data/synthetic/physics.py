@@ -1,15 +1,26 @@
-"""The physics variant: track a kinematic motion in a MuJoCo C simulation.
+"""The physics variant: track a kinematic motion in a MuJoCo C simulation moved by contacts alone.
 
-:func:`simulate_tracking` drives the hinges with PD plus an inverse-dynamics feed-forward
-(:func:`_feedforward`: contact forces distributed over the planted contact points by
-non-negative least squares in a friction pyramid) and the root with the residual wrench the
-contacts cannot explain plus a weak PD; it records the applied generalised forces (``gt_tau``)
-and the foot contact forces (``gt_grf``). :class:`PhysicsConfig` holds its settings.
+:func:`simulate_tracking` runs a whole-body tracking controller at every simulation substep
+(:func:`_control`): desired accelerations for all dofs (reference acceleration + PD, root
+included) are traded off, by a bounded least squares, against contact forces at the foot
+points MuJoCo has on the floor (non-negative combinations of the edges of the
+``FRICTION_MU`` pyramid) such that the *root rows* of the equation of motion hold with no root
+force; the resulting hinge torques are applied and MuJoCo's own contact solver produces the
+real contact forces, which are the ground truth. The root is moved by gravity and contacts only;
+a penalised root residual is switched on only while the root pose error exceeds
+:attr:`PhysicsConfig.rescue_pos_m` / :attr:`PhysicsConfig.rescue_rot_deg` (recorded as
+``residual``). Forces are sampled at the frames by the tent average that matches central
+differences of the frame positions (:func:`tent_average`); per-site forces come from a lever
+split of each contact force between its foot's heel and toe sites (:func:`lever_split`), per-foot
+force, centre of pressure and free moment from MuJoCo's contact points
+(:func:`foot_cop_free_moment`). :class:`PhysicsConfig` holds the settings; ``docs/data.md``
+describes the whole design.
 """
 
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from dataclasses import dataclass
 
@@ -17,7 +28,7 @@ import mujoco
 import numpy as np
 from scipy.optimize import nnls
 
-from jmocap.constants import GRAVITY
+from jmocap.constants import FLOOR_NORMAL, FRICTION_CONE, FRICTION_MU, GRAVITY
 from jmocap.data.synthetic.character import Character
 from jmocap.data.synthetic.curves import _wrap
 from jmocap.data.synthetic.errors import GenerationError
@@ -28,210 +39,375 @@ from jmocap.data.synthetic.ground_truth import velocities
 class PhysicsConfig:
     """Tracking controller of the physics variant (see ``docs/data.md``).
 
-    Hinges: ``tau = tau_ff + kp (q_ref - q) + kd (qd_ref - qd)`` with ``kp = M_jj w^2``,
-    ``kd = 2 zeta M_jj w`` (``M_jj``: the joint-space inertia at the standing pose), the damping
-    part integrated implicitly (as MuJoCo ``dof_damping`` with the ``implicitfast``
-    integrator); ``tau_ff`` is inverse dynamics of the reference with the contact forces
-    distributed over the planted contact points (non-negative least squares in a friction
-    pyramid). Root: the part of the reference's root wrench the contacts cannot explain, plus a
-    weak PD on the root pose (``root_freq_hz``); both are the *residual* force / torque.
+    Desired accelerations ``qdd_ref + w^2 (q_ref - q) + 2 zeta w (qd_ref - qd)`` (hinges:
+    ``joint_freq_hz``; root: ``root_freq_hz``), weighted by the standing pose's joint-space
+    inertia (``sqrt(M_ii)`` per row, times ``w_root`` / ``w_joint``); planted contact points
+    held still (``w_contact``, a velocity damping at ``contact_damping_hz``); edge coefficients
+    regularised by ``w_force`` (per newton, relative to ``sqrt(mass)``). The rescue residual is
+    on while the root is more than ``rescue_pos_m`` or ``rescue_rot_deg`` off the reference and
+    off again below ``rescue_off`` times both; it costs ``w_residual`` per newton.
     """
 
     substeps_per_frame: int = 0  # 0: as many as make the step <= max_dt
-    max_dt: float = 0.004
+    max_dt: float = 0.002
     joint_freq_hz: float = 6.0
-    joint_zeta: float = 1.0
-    min_inertia: float = 0.02
-    root_freq_hz: float = 1.0
-    root_zeta: float = 1.0
-    friction: float = 0.9
+    root_freq_hz: float = 2.0
+    zeta: float = 1.0
+    w_root: float = 1.0
+    w_joint: float = 1.0
+    w_contact: float = 10.0
+    contact_damping_hz: float = 5.0
+    w_force: float = 1e-3
+    rescue_pos_m: float = 0.10
+    rescue_rot_deg: float = 15.0
+    rescue_off: float = 0.5
+    w_residual: float = 1.0
+    contact_force_threshold: float = 0.01  # fraction of body weight: force contact label, CoP
     contact_timeconst: float = 0.008  # MuJoCo solref time constant of the contacts (s)
     fall_height: float = 0.5  # fraction of the standing pelvis height
     fall_tilt_deg: float = 60.0
 
 
-def _pyramid(mu):
-    d = np.array([[mu, 0, 1], [-mu, 0, 1], [0, mu, 1], [0, -mu, 1]], float)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+@functools.cache
+def pyramid_edges() -> np.ndarray:
+    """The 4 edges (4, 3) of the floor's friction pyramid: ``jmocap.physics.friction_pyramid_edges``
+    for the floor normal and ``FRICTION_MU`` (MuJoCo's pyramidal cone: ``n +- mu t1``,
+    ``n +- mu t2``; the floor's tangent axes are world x and y)."""
+    from jmocap.physics.qp import friction_pyramid_edges
+
+    return np.asarray(friction_pyramid_edges(np.asarray(FLOOR_NORMAL, float), FRICTION_MU, 4), float)
 
 
-def _feedforward(ch: Character, mj, q, qd, qdd, planted, mu):
-    """Inverse dynamics of the reference (T frames): hinge feed-forward torques (T, nv) and the
-    root wrench the planted contacts cannot supply (T, 6)."""
-    T = len(q)
-    mj = copy.deepcopy(mj)  # rigid-body inverse dynamics only: no contacts, limits, damping
-    mj.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+def simulation_model(mj: mujoco.MjModel, dt: float, contact_timeconst: float) -> mujoco.MjModel:
+    """A copy of ``mj`` set up for the tracking simulation: timestep ``dt``, ``implicitfast``,
+    jmocap's one friction model (``FRICTION_MU``, pyramidal cone) on every geom, no passive
+    damping, contact time constant ``contact_timeconst`` (stiffer than MuJoCo's 0.02 s)."""
+    if FRICTION_CONE != "pyramidal":
+        raise ValueError(f"unsupported friction cone {FRICTION_CONE!r}")
+    mj = copy.deepcopy(mj)
+    mj.opt.timestep = dt
+    mj.opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    mj.opt.cone = mujoco.mjtCone.mjCONE_PYRAMIDAL
+    mj.geom_friction[:, 0] = FRICTION_MU
     mj.dof_damping[:] = 0.0
-    d = mujoco.MjData(mj)
-    ff = np.zeros((T, mj.nv))
-    res = np.zeros((T, 6))
-    jp = np.zeros((3, mj.nv))
-    D = _pyramid(mu)
-    w, l = 0.035 * ch.scale, 0.03 * ch.scale
-    patch = ([np.array([0.0, w, 0.0]), np.array([0.0, -w, 0.0]), np.array([l, 0.0, 0.0])],  # heel
-             [np.array([0.0, w, 0.0]), np.array([0.0, -w, 0.0]), np.array([l, 0.0, 0.0]),
-              np.array([-l, 0.0, 0.0])])  # toe
-    for k in range(T):
-        d.qpos[:], d.qvel[:], d.qacc[:] = q[k], qd[k], qdd[k]
-        mujoco.mj_inverse(mj, d)
-        tau = d.qfrc_inverse.copy()
-        pts = np.nonzero(planted[k])[0]
-        force_gen = np.zeros(mj.nv)
-        if len(pts):
-            mujoco.mj_kinematics(mj, d)
-            mujoco.mj_comPos(mj, d)
-            cols = []
-            for i in pts:
-                sid = int(ch.contact_sites[i])
-                body = int(mj.site_bodyid[sid])
-                R = d.xmat[body].reshape(3, 3)
-                for off in patch[i % 2]:  # a small sole patch around the contact site
-                    p = d.site_xpos[sid] + R @ off
-                    mujoco.mj_jac(mj, d, jp, None, p, body)
-                    cols.append(jp.T @ D.T)  # (nv, 4)
-            A = np.concatenate(cols, axis=1)  # (nv, 4n)
-            n = A.shape[1]
-            Aw = np.vstack([A[:6], 1e-2 * np.eye(n)])
-            bw = np.concatenate([tau[:6], np.zeros(n)])
-            c, _ = nnls(Aw, bw, maxiter=50 * n)
-            force_gen = A @ c
-        ff[k] = tau - force_gen
-        res[k] = ff[k, :6]
-        ff[k, :6] = 0.0
-    return ff, res
+    mj.geom_solref[:, 0] = max(contact_timeconst, 2 * dt)
+    mj.geom_solref[:, 1] = 1.0
+    return mj
 
 
-def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, planted: np.ndarray,
-                      cfg: PhysicsConfig = PhysicsConfig()) -> dict:
-    """Track a kinematic motion in MuJoCo C (floor contact, PD + feed-forward hinges, residual
-    root wrench). Returns q, qd (T, nq/nv) of the simulated motion sampled at the frames,
-    ``tau`` (T, nv) applied generalised forces and ``grf`` (T, 4, 3) world-frame foot contact
-    forces (each averaged over the frame's substeps), and residual / tracking statistics."""
+def reference_derivatives(mj: mujoco.MjModel, q_ref: np.ndarray, fps: float):
+    """Velocities (``mj_differentiatePos`` central differences) and accelerations (central
+    differences of those, one-sided at the ends) of a reference motion."""
+    qd = velocities(mj, q_ref, fps)
+    qdd = np.zeros_like(qd)
+    if len(q_ref) > 1:
+        qdd[1:-1] = (qd[2:] - qd[:-2]) * fps / 2
+        qdd[0], qdd[-1] = (qd[1] - qd[0]) * fps, (qd[-1] - qd[-2]) * fps
+    return qd, qdd
+
+
+def tent_weights(n: int) -> np.ndarray:
+    """Weights (2n - 1,) of substeps ``kn - n + 1 .. kn + n - 1`` in frame k's value.
+
+    With MuJoCo's semi-implicit step (``v' = v + h a``, ``x' = x + h v'``) the central second
+    difference of the positions at substeps ``(k-1)n, kn, (k+1)n`` is exactly
+    ``sum_m (n - |m|) a[kn + m] / n^2`` (``a[s]``: the acceleration of step s); so a force
+    sampled with these weights is the one Newton's law gives from central differences of the
+    frame positions."""
+    m = np.arange(-n + 1, n)
+    return (n - np.abs(m)) / float(n * n)
+
+
+def tent_average(x: np.ndarray, n: int) -> np.ndarray:
+    """Frame values (T, ...) of substep values (T n, ...) by :func:`tent_weights`; frame 0 (no
+    substeps before it) is the renormalised half tent."""
+    T = len(x) // n
+    w = tent_weights(n)
+    out = np.zeros((T,) + x.shape[1:])
+    for j, m in enumerate(range(-n + 1, n)):
+        idx = np.arange(T) * n + m
+        ok = (idx >= 0) & (idx < len(x))
+        out[ok] += w[j] * x[idx[ok]]
+    if T:
+        out[0] /= w[n - 1:].sum()
+    return out
+
+
+def lever_split(points: np.ndarray, forces: np.ndarray, heel: np.ndarray, toe: np.ndarray) -> np.ndarray:
+    """Split contact forces (k, 3) at points (k, 3) between a foot's heel and toe sites (3,):
+    the lever rule along the heel-toe axis (clipped to the segment). Returns (2, 3): heel, toe.
+
+    Each share is a non-negative multiple of its force (so stays in the friction cone); the sum
+    is the foot's force, and its moment is kept except for the contacts' offsets across the
+    heel-toe axis and beyond its ends."""
+    axis = toe - heel
+    s = np.clip((points - heel) @ axis / max(float(axis @ axis), 1e-12), 0.0, 1.0)
+    return np.stack([((1 - s)[:, None] * forces).sum(0), (s[:, None] * forces).sum(0)])
+
+
+def foot_cop_free_moment(force: np.ndarray, moment: np.ndarray, fallback: np.ndarray, threshold: float):
+    """Centre of pressure on the floor (..., 3) and free moment (...) of a foot's force (..., 3)
+    and moment about the world origin (..., 3) (the force-plate formulas ``x = -M_y / F_z``,
+    ``y = M_x / F_z``, ``tau = M_z - (x F_y - y F_x)``). Where ``F_z <= threshold`` the CoP is
+    ``fallback`` (..., 3) put on the floor and the free moment 0."""
+    fz = force[..., 2]
+    loaded = fz > threshold
+    safe = np.where(loaded, fz, 1.0)
+    x = np.where(loaded, -moment[..., 1] / safe, fallback[..., 0])
+    y = np.where(loaded, moment[..., 0] / safe, fallback[..., 1])
+    tau = np.where(loaded, moment[..., 2] - (x * force[..., 1] - y * force[..., 0]), 0.0)
+    return np.stack([x, y, np.zeros_like(x)], axis=-1), tau
+
+
+def force_contact_labels(grf: np.ndarray, threshold: float) -> np.ndarray:
+    """Contact labels (T, 4) from per-site forces (T, 4, 3): vertical force above ``threshold`` N."""
+    return (grf[..., 2] > threshold).astype(np.float32)
+
+
+@dataclass
+class _Contacts:
+    """The foot-floor contacts of the current state (MuJoCo's ``d.contact`` after ``mj_step1``)."""
+
+    index: np.ndarray  # (k,) indices into d.contact
+    foot: np.ndarray  # (k,) 0 left, 1 right
+    body: np.ndarray  # (k,) body id of the foot geom
+    pos: np.ndarray  # (k, 3) contact points
+    sign: np.ndarray  # (k,) +1 when geom2 is the foot (the force MuJoCo reports acts on geom2)
+
+
+def _floor_contacts(d, is_floor, geom_foot, geom_body) -> tuple[_Contacts, int]:
+    """Foot-floor contacts and the number of other floor contacts."""
+    nc = d.ncon
+    g1 = d.contact.geom1[:nc]
+    g2 = d.contact.geom2[:nc]
+    f1, f2 = is_floor[g1], is_floor[g2]
+    other = np.where(f1, g2, g1)
+    on_floor = f1 | f2
+    foot = geom_foot[other]
+    use = on_floor & (foot >= 0)
+    idx = np.nonzero(use)[0]
+    return _Contacts(index=idx, foot=foot[idx], body=geom_body[other[idx]],
+                     pos=d.contact.pos[:nc][idx].copy(),
+                     sign=np.where(f1[idx], 1.0, -1.0)), int(np.sum(on_floor & (foot < 0)))
+
+
+def _contact_forces(mj, d, con: _Contacts) -> np.ndarray:
+    """World-frame forces (k, 3) on the feet of the contacts ``con`` (after the step)."""
+    out = np.zeros((len(con.index), 3))
+    f6 = np.zeros(6)
+    for i, c in enumerate(con.index):
+        mujoco.mj_contactForce(mj, d, int(c), f6)
+        out[i] = con.sign[i] * (d.contact.frame[c].reshape(3, 3).T @ f6[:3])
+    return out
+
+
+def _contact_jacobians(mj, d, con: _Contacts, E: np.ndarray, jp: np.ndarray):
+    """Generalised forces of the pyramid edges at the contact points, ``A`` (nv, 4k), and the
+    points' Jacobians ``Jc`` (3k, nv) (``mj_jac`` on the foot bodies; ``jp``: a (3, nv) buffer)."""
+    A_cols, J_rows = [], []
+    for p, b in zip(con.pos, con.body):
+        mujoco.mj_jac(mj, d, jp, None, p, int(b))
+        A_cols.append(jp.T @ E.T)
+        J_rows.append(jp.copy())
+    if not A_cols:
+        return np.zeros((mj.nv, 0)), np.zeros((0, mj.nv))
+    return np.hstack(A_cols), np.vstack(J_rows)
+
+
+def _control(M, h, A, Jc, vc, a_des, sw, cfg: PhysicsConfig, mass: float, residual: bool):
+    """One whole-body tracking step: generalised force (nv,) to apply (root entries: the residual).
+
+    Unknowns: hinge accelerations x, edge coefficients c >= 0 and, while ``residual``, a root
+    wrench r; the root acceleration is eliminated with the root rows of
+    ``M qdd + h = A c + [r; tau]`` (r = 0 otherwise). Minimises ``|sw (qdd - a_des)|^2 +
+    w_contact^2 mass |Jc qdd + k vc|^2 + w_force^2 mass |c|^2 + w_residual^2 |r|^2 / mass``: the
+    unconstrained (x, r) are projected out (QR), the rest is a non-negative least squares in c
+    (Lawson-Hanson ``nnls``)."""
+    nv = len(h)
+    nj = nv - 6
+    nr = 6 if residual else 0
+    Minv = np.linalg.inv(M[:6, :6])
+    B = Minv @ M[:6, 6:]
+    g0 = Minv @ h[:6]
+    P = Minv @ A[:6]
+    m = P.shape[1]
+    # qdd_r = Kr z + P c - g0 with z = [x, r]; rows K z + H c - y
+    Kr = np.hstack([-B, Minv[:, :nr]])
+    blocks = [
+        (sw[:6, None] * Kr, sw[:6, None] * P, sw[:6] * (g0 + a_des[:6])),
+        (np.hstack([np.diag(sw[6:]), np.zeros((nj, nr))]), np.zeros((nj, m)), sw[6:] * a_des[6:]),
+    ]
+    if len(Jc):
+        sc = cfg.w_contact * math.sqrt(mass)
+        Jr = Jc[:, :6]
+        kv = 2 * math.pi * cfg.contact_damping_hz
+        Kc = Jr @ Kr
+        Kc[:, :nj] += Jc[:, 6:]
+        blocks.append((sc * Kc, sc * (Jr @ P), sc * (Jr @ g0 - kv * vc)))
+    if residual:
+        blocks.append((np.hstack([np.zeros((6, nj)), cfg.w_residual / math.sqrt(mass) * np.eye(6)]),
+                       np.zeros((6, m)), np.zeros(6)))
+    K = np.vstack([b[0] for b in blocks])
+    H = np.vstack([b[1] for b in blocks])
+    y = np.concatenate([b[2] for b in blocks])
+    nz = nj + nr
+    Q, R = np.linalg.qr(K, mode="complete")
+    c = np.zeros(m)
+    if m:
+        Q2 = Q[:, nz:]
+        Ac = np.vstack([Q2.T @ H, cfg.w_force * math.sqrt(mass) * np.eye(m)])
+        bc = np.concatenate([Q2.T @ y, np.zeros(m)])
+        c, _ = nnls(Ac, bc, maxiter=50 * m)
+    z = np.linalg.solve(R[:nz], Q[:, :nz].T @ (y - H @ c))
+    x, r = z[:nj], z[nj:]
+    qdd = np.concatenate([Kr @ z + P @ c - g0, x])
+    tau = M @ qdd + h - A @ c
+    tau[:6] = r if residual else 0.0
+    return tau
+
+
+def _rescue(on: bool, pos_err: float, rot_err: float, cfg: PhysicsConfig) -> bool:
+    """Hysteresis of the rescue residual: on when the root is more than ``rescue_pos_m`` or
+    ``rescue_rot_deg`` off the reference, off again when below ``rescue_off`` times both."""
+    p, a = cfg.rescue_pos_m, math.radians(cfg.rescue_rot_deg)
+    if pos_err > p or rot_err > a:
+        return True
+    if pos_err < cfg.rescue_off * p and rot_err < cfg.rescue_off * a:
+        return False
+    return on
+
+
+def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: PhysicsConfig = PhysicsConfig()) -> dict:
+    """Track a kinematic motion in MuJoCo C, moved by hinge torques and contacts (a penalised
+    root residual only while the root is far off the reference).
+
+    Returns, sampled at the frames (forces by :func:`tent_average`): ``q``, ``qd`` (T, nq/nv) the
+    simulated states; ``tau`` (T, nv) the applied generalised forces (root residual, hinge
+    torques); ``residual`` (T, 6) = ``tau[:, :6]``; ``grf`` (T, 4, 3) the world-frame contact
+    forces on the feet, lever-split between each foot's heel and toe sites; ``foot_force``
+    (T, 2, 3), ``cop`` (T, 2, 3), ``free_moment`` (T, 2) per foot (left, right); ``contacts``
+    (T, 4) force contact labels; and ``stats``.
+    """
     T = len(q_ref)
-    mj = copy.deepcopy(ch.mj)
     frame_dt = 1.0 / fps
     n = cfg.substeps_per_frame or max(1, int(math.ceil(frame_dt / cfg.max_dt - 1e-9)))
     dt = frame_dt / n
-    mj.opt.timestep = dt
-    mj.opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
-    # stiffer contacts than MuJoCo's default (time constant 0.02 s): less sinking on impact
-    mj.geom_solref[:, 0] = max(cfg.contact_timeconst, 2 * dt)
-    mj.geom_solref[:, 1] = 1.0
+    mj = simulation_model(ch.mj, dt, cfg.contact_timeconst)
     nv = mj.nv
-    qd_ref = velocities(mj, q_ref, fps)
-    qdd_ref = np.zeros_like(qd_ref)
-    if T > 1:
-        qdd_ref[1:-1] = (qd_ref[2:] - qd_ref[:-2]) * fps / 2
-        qdd_ref[0], qdd_ref[-1] = (qd_ref[1] - qd_ref[0]) * fps, (qd_ref[-1] - qd_ref[-2]) * fps
-    ff, id_res = _feedforward(ch, mj, q_ref, qd_ref, qdd_ref, planted, cfg.friction)
-    # gains from the joint-space inertia at the standing pose
-    d0 = mujoco.MjData(mj)
-    d0.qpos[:] = ch.q_stand
-    mujoco.mj_forward(mj, d0)
+    qd_ref, qdd_ref = reference_derivatives(mj, q_ref, fps)
+    d = mujoco.MjData(mj)
+    d.qpos[:] = ch.q_stand
+    mujoco.mj_forward(mj, d)
     M = np.zeros((nv, nv))
-    mujoco.mj_fullM(mj, d0, M)
-    Mjj = np.maximum(np.diag(M)[6:], cfg.min_inertia)
-    w = 2 * np.pi * cfg.joint_freq_hz
-    kp = Mjj * w * w
-    kd = 2 * cfg.joint_zeta * Mjj * w
-    mj.dof_damping[6:] = kd
+    mujoco.mj_fullM(mj, d, M)
+    sw = np.sqrt(np.diag(M)) * np.r_[np.full(6, cfg.w_root), np.full(nv - 6, cfg.w_joint)]
+    kp = (2 * np.pi * np.r_[np.full(6, cfg.root_freq_hz), np.full(nv - 6, cfg.joint_freq_hz)]) ** 2
+    kd = 2 * cfg.zeta * np.sqrt(kp)
     mass = float(np.sum(mj.body_mass))
     weight = mass * GRAVITY
-    wr = 2 * np.pi * cfg.root_freq_hz
-    I_root = np.diag(M)[3:6].copy()
-    # foot geoms -> which foot; contact sites
-    foot_bodies = {ch.legs[0].ankle_body, ch.legs[0].toe_body, ch.legs[1].ankle_body, ch.legs[1].toe_body}
-    floor = [g for g in range(mj.ngeom) if mj.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE]
-    if not floor:
+    E = pyramid_edges()
+    floor = np.array([mj.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE for g in range(mj.ngeom)])
+    if not floor.any():
         raise ValueError("the model has no floor plane")
-    floor = set(floor)
-    d = mujoco.MjData(mj)
+    geom_foot = np.full(mj.ngeom, -1)
+    for f, L in enumerate(ch.legs):
+        geom_foot[np.isin(mj.geom_bodyid, [L.ankle_body, L.toe_body])] = f
+    geom_body = np.array(mj.geom_bodyid)
+    sites = ch.contact_sites
+    z_fall = cfg.fall_height * ch.z_stand
+    cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg))
+
     d.qpos[:] = q_ref[0]
     d.qvel[:] = qd_ref[0]
     mujoco.mj_forward(mj, d)
     q_out = np.zeros((T, mj.nq))
     qd_out = np.zeros((T, nv))
-    tau_out = np.zeros((T, nv))
-    grf_out = np.zeros((T, 4, 3))
-    resid = np.zeros((T, 6))
-    f6 = np.zeros(6)
+    S = T * n
+    sub_tau = np.zeros((S, nv))
+    sub_grf = np.zeros((S, 4, 3))
+    sub_foot = np.zeros((S, 2, 3))
+    sub_moment = np.zeros((S, 2, 3))
+    sub_mid = np.zeros((S, 2, 3))
+    rescue_sub = np.zeros(S, bool)
+    root_err = np.zeros((T, 2))
     nonfoot = 0
-    z_fall = cfg.fall_height * ch.z_stand
-    cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg))
-    foot_geom = np.array([mj.geom_bodyid[g] in foot_bodies for g in range(mj.ngeom)])
-    is_floor = np.zeros(mj.ngeom, bool)
-    is_floor[list(floor)] = True
+    rescue = False
+    e = np.zeros(nv)
     e_rot = np.zeros(3)
-    quat = np.zeros(4)
-    qfrc = np.zeros(nv)
+    jp = np.zeros((3, nv))
     for k in range(T):
         q_out[k], qd_out[k] = d.qpos, d.qvel
         k1 = min(k + 1, T - 1)
-        qa_ref, qb_ref = q_ref[k], q_ref[k1]
-        if np.dot(qa_ref[3:7], qb_ref[3:7]) < 0:
-            qb_ref = qb_ref.copy()
-            qb_ref[3:7] *= -1
-        acc_tau = np.zeros(nv)
-        acc_grf = np.zeros((4, 3))
+        qa, qb = q_ref[k], q_ref[k1].copy()
+        if np.dot(qa[3:7], qb[3:7]) < 0:
+            qb[3:7] *= -1
         for i in range(n):
+            s = k * n + i
             a = i / n
-            qr = (1 - a) * qa_ref + a * qb_ref
+            mujoco.mj_step1(mj, d)
+            qr = (1 - a) * qa + a * qb
             qdr = (1 - a) * qd_ref[k] + a * qd_ref[k1]
-            quat[:] = qr[3:7] / np.linalg.norm(qr[3:7])
-            qfrc[6:] = ((1 - a) * ff[k, 6:] + a * ff[k1, 6:] + kp * (qr[7:] - d.qpos[7:])
-                        + kd * qdr[6:])
-            mujoco.mju_subQuat(e_rot, quat, d.qpos[3:7])  # body-frame rotation to the reference
-            qfrc[:3] = ((1 - a) * id_res[k, :3] + a * id_res[k1, :3]
-                        + mass * (wr * wr * (qr[:3] - d.qpos[:3])
-                                  + 2 * cfg.root_zeta * wr * (qdr[:3] - d.qvel[:3])))
-            qfrc[3:6] = ((1 - a) * id_res[k, 3:] + a * id_res[k1, 3:]
-                         + I_root * (wr * wr * e_rot + 2 * cfg.root_zeta * wr * (qdr[3:6] - d.qvel[3:6])))
-            d.qfrc_applied[:] = qfrc
-            mujoco.mj_step(mj, d)
-            acc_tau += qfrc
-            acc_tau[6:] -= kd * d.qvel[6:]  # the implicit damping acted with the new velocity
-            if d.ncon:
-                g1 = d.contact.geom1[: d.ncon]
-                g2 = d.contact.geom2[: d.ncon]
-                sp = None
-                for c in range(d.ncon):
-                    if is_floor[g1[c]]:
-                        other, sign = g2[c], 1.0
-                    elif is_floor[g2[c]]:
-                        other, sign = g1[c], -1.0
-                    else:
-                        continue
-                    if not foot_geom[other]:
-                        nonfoot += 1
-                        continue
-                    mujoco.mj_contactForce(mj, d, c, f6)
-                    con = d.contact[c]
-                    fw = sign * (con.frame.reshape(3, 3).T @ f6[:3])
-                    if sp is None:
-                        sp = d.site_xpos[ch.contact_sites]
-                    j = int(np.argmin(((sp - con.pos) ** 2).sum(axis=1)))
-                    acc_grf[j] += fw
-        tau_out[k] = acc_tau / n
-        grf_out[k] = acc_grf / n
-        resid[k] = tau_out[k, :6]
-        z = d.qpos[2]
+            qddr = (1 - a) * qdd_ref[k] + a * qdd_ref[k1]
+            mujoco.mju_subQuat(e_rot, qr[3:7] / np.linalg.norm(qr[3:7]), d.qpos[3:7])
+            e[:3], e[3:6], e[6:] = qr[:3] - d.qpos[:3], e_rot, _wrap(qr[7:] - d.qpos[7:])
+            err = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e_rot))
+            if i == 0:
+                root_err[k] = err
+            rescue = rescue_sub[s] = _rescue(rescue, *err, cfg)
+            a_des = qddr + kp * e + kd * (qdr - d.qvel)
+            con, other = _floor_contacts(d, floor, geom_foot, geom_body)
+            nonfoot += other
+            A, Jc = _contact_jacobians(mj, d, con, E, jp)
+            sp = d.site_xpos[sites].copy()
+            mujoco.mj_fullM(mj, d, M)
+            tau = _control(M, d.qfrc_bias, A, Jc, Jc @ d.qvel, a_des, sw, cfg, mass, rescue)
+            d.qfrc_applied[:] = tau
+            mujoco.mj_step2(mj, d)
+            sub_tau[s] = tau
+            # the step's contact forces (computed in mj_step2 for the contacts of mj_step1)
+            fw = _contact_forces(mj, d, con)
+            for f in range(2):
+                on = con.foot == f
+                heel, toe = sp[2 * f], sp[2 * f + 1]
+                sub_mid[s, f] = (heel + toe) / 2
+                if on.any():
+                    sub_grf[s, 2 * f: 2 * f + 2] = lever_split(con.pos[on], fw[on], heel, toe)
+                    sub_foot[s, f] = fw[on].sum(0)
+                    sub_moment[s, f] = np.cross(con.pos[on], fw[on]).sum(0)
         up = d.xmat[ch.pelvis].reshape(3, 3)[2, 2]
-        if not np.all(np.isfinite(d.qpos)) or z < z_fall or up < cos_tilt:
+        if not np.all(np.isfinite(d.qpos)) or d.qpos[2] < z_fall or up < cos_tilt:
             raise GenerationError(f"the simulated character fell at frame {k}")
-    F = np.linalg.norm(resid[:, :3], axis=1) / weight
-    Tq = np.linalg.norm(resid[:, 3:], axis=1) / (weight * ch.height)
+    threshold = cfg.contact_force_threshold * weight
+    tau = tent_average(sub_tau, n)
+    grf = tent_average(sub_grf, n)
+    foot_force = tent_average(sub_foot, n)
+    cop, free_moment = foot_cop_free_moment(foot_force, tent_average(sub_moment, n),
+                                            sub_mid[::n], threshold)
+    residual = tau[:, :6].copy()
+    F = np.linalg.norm(residual[:, :3], axis=1) / weight
+    Tq = np.linalg.norm(residual[:, 3:], axis=1) / (weight * ch.height)
+    res_frames = np.any(residual != 0, axis=1)
     hinge_err = np.abs(_wrap(q_out[:, 7:] - q_ref[:, 7:]))
     stats = dict(
         substeps=n,
         timestep=dt,
+        friction_mu=FRICTION_MU,
+        friction_cone=FRICTION_CONE,
+        contact_force_threshold_bw=cfg.contact_force_threshold,
+        residual_frames=int(res_frames.sum()),
+        residual_frame_share=float(res_frames.mean()),
+        residual_substep_share=float(rescue_sub.mean()),
         residual_force_mean=float(F.mean()),
         residual_force_max=float(F.max()),
         residual_torque_mean=float(Tq.mean()),
         residual_torque_max=float(Tq.max()),
-        feedforward_residual_force_mean=float(np.mean(np.linalg.norm(id_res[:, :3], axis=1)) / weight),
-        tracking_root_mm=float(np.mean(np.linalg.norm(q_out[:, :3] - q_ref[:, :3], axis=1)) * 1000),
+        tracking_root_mm=float(root_err[:, 0].mean() * 1000),
+        tracking_root_max_mm=float(root_err[:, 0].max() * 1000),
+        tracking_root_deg=float(np.degrees(root_err[:, 1].mean())),
         tracking_joint_deg=float(np.degrees(hinge_err.mean())),
-        grf_vertical_mean_over_weight=float(grf_out[..., 2].sum(axis=1).mean() / weight),
+        grf_vertical_mean_over_weight=float(grf[..., 2].sum(axis=1).mean() / weight),
         nonfoot_contacts=int(nonfoot),
     )
-    return dict(q=q_out, qd=qd_out, tau=tau_out, grf=grf_out, stats=stats)
+    return dict(q=q_out, qd=qd_out, tau=tau, residual=residual, grf=grf, foot_force=foot_force,
+                cop=cop, free_moment=free_moment, contacts=force_contact_labels(grf, threshold),
+                stats=stats)
