@@ -101,7 +101,8 @@ def _data(p: argparse.ArgumentParser) -> None:
     s.add_argument("--clips", type=int, required=True, help="number of clips")
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     s.add_argument("--physics", action="store_true",
-                   help="track each motion in MuJoCo simulation (gt_tau, gt_grf)")
+                   help="track each motion in MuJoCo simulation moved by contacts (gt_tau, gt_grf, "
+                        "gt_residual, per-foot force, CoP, free moment; force contact labels)")
     s.add_argument("--frames-per-clip", type=_frames_arg, default=(150, 300), metavar="N|MIN:MAX",
                    help="clip length in frames (default 150:300)")
     s.add_argument("--layout", default="body25", choices=["body25", "coco17", "h36m17"],
@@ -188,6 +189,7 @@ def _consume(results, writer, bar, seed):
         if phys:
             extra["residual_force_mean"] = phys["residual_force_mean"]
             extra["residual_force_max"] = phys["residual_force_max"]
+            extra["residual_frame_share"] = phys["residual_frame_share"]
         writer.add(clip, **extra)
         written += 1
         frames += clip.num_frames

@@ -20,10 +20,12 @@ See ``docs/data.md`` for the full description. In short:
     its range.
 
 * :func:`generate_clip` adds ground truth (``gt_q``, ``gt_qd`` by ``mj_differentiatePos``,
-  3D keypoints, Rempe et al.'s contact labels), optionally tracks the motion in a MuJoCo
-  simulation (``physics=True``: PD + inverse-dynamics feed-forward on the hinges and a
-  residual root force/torque, giving ``gt_tau`` and ``gt_grf``), samples a static camera
-  and projects noisy 2D keypoints (:class:`Corruption`).
+  3D keypoints, Rempe et al.'s geometric contact labels), optionally tracks the motion in a
+  MuJoCo simulation (``physics=True``: a whole-body tracking controller whose root is moved by
+  gravity and MuJoCo's contact forces only, with jmocap's one friction model, plus a recorded
+  rescue residual where the root strays too far; giving ``gt_tau``, ``gt_grf``,
+  ``gt_residual``, per-foot force, centre of pressure and free moment, and force contact
+  labels), samples a static camera and projects noisy 2D keypoints (:class:`Corruption`).
 
 Everything is deterministic for a seed: a clip's random stream is
 ``numpy.random.default_rng([seed, index])``.
