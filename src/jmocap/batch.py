@@ -164,6 +164,8 @@ def reconstruct_archive(
                     assumed=assumed_fields(clip),
                 )
                 extra = {}
+                if res.get("certified") is not None:  # per-frame QP certificates (e.g. ``pip``)
+                    extra["uncertified_frames"] = int(np.sum(~np.asarray(res["certified"], bool)))
                 if write_bvh is not None:
                     extra["bvh"] = _write_bvh(write_bvh, writer.root, src.name, model, res["q"], clip.fps)
                 writer.add_result(
@@ -223,6 +225,7 @@ def reconstruct_archive(
         "failed": len(entries) - len(ok),
         "pending": len(names) - len(entries),
         "frames": int(sum(e.get("frames", 0) for e in ok)),
+        "uncertified_frames": int(sum(e.get("uncertified_frames", 0) for e in ok)),
         "run": {
             **run,
             "skipped": skipped,

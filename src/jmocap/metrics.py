@@ -42,6 +42,7 @@ from jmocap.camera import Camera, default_extrinsics, project
 from jmocap.constants import GRAVITY  # the body weight is mass * GRAVITY
 from jmocap.model import Model, character
 from jmocap.numerics import safe_div, safe_normalize
+from jmocap.physics.contact import sole_half_width
 from jmocap.physics.linalg import det3
 from jmocap.physics.rotations import quat_to_mat
 
@@ -637,22 +638,6 @@ def contact_classification(prob: Array, gt: Array, mask=None, *, threshold: floa
 # =========================================================================================
 # quantities of a motion the metrics read, and the flat evaluation of one clip
 # =========================================================================================
-
-
-def sole_half_width(model: Model) -> float:
-    """Half the width (m) of the character's soles: the largest lateral half-size of the box
-    geoms on the bodies that carry the foot contact sites (0 when there are none). Read from the
-    compiled MuJoCo model, so it follows a rescaled character."""
-    import mujoco
-
-    mj = model.mj
-    bodies = {model.topo.site_body[s] for s in model.topo.contact_sites}
-    sizes = [
-        float(mj.geom_size[g, 1])
-        for g in range(mj.ngeom)
-        if int(mj.geom_bodyid[g]) in bodies and int(mj.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_BOX)
-    ]
-    return max(sizes, default=0.0)
 
 
 def motion_quantities(model: Model, q: Array, fps, layout: str = "body25", half_width=0.0) -> dict[str, Array]:

@@ -23,6 +23,9 @@ class Motion:
     contact_prob: Array  # (T, 4) foot-contact probabilities, same order
     target_q: Array  # (T, nq) the kinematic target (TPNet output) the dynamics tracked
     mask: Array  # (T,) bool, True for real frames
+    # (T,) bool, methods that solve an optimisation per frame: every solve of the frame was
+    # certified optimal (KKT conditions checked); None for methods without one
+    certified: Array | None = None
 
     @property
     def num_frames(self) -> int:

@@ -213,7 +213,7 @@ class Reconstructor:
             pending, start = res, start + length
         fetched.append(_fields(jax.device_get(pending)))
         return [
-            {k: np.concatenate([f[k][i] for f in fetched])[: c.num_frames] for k in MOTION_FIELDS}
+            {k: np.concatenate([f[k][i] for f in fetched])[: c.num_frames] for k in fetched[0]}
             for i, c in enumerate(clips)
         ]
 
@@ -223,6 +223,7 @@ def _fields(res: ChunkResult) -> dict[str, np.ndarray]:
     return dict(
         q=m.q, qd=m.qd, tau=m.tau, grf=m.grf, contact_prob=m.contact_prob, target_q=m.target_q,
         keypoints3d=res.keypoints3d,
+        **({} if m.certified is None else {"certified": m.certified}),
     )
 
 

@@ -15,6 +15,8 @@ contact_prob       float32    (T, 4)        contact probabilities
 target_q           float32    (T, nq)       the kinematic target the dynamics tracked
 keypoints3d        float32    (T, J, 3)     world-frame joints of ``q`` in ``layout``
 keypoints2d        float32    (T, J, 3)     the input keypoints (pixels, confidence)
+certified          bool       (T,)          optional, methods that solve a QP per frame: every
+                                            solve of the frame passed its KKT check
 fps                float64    ()            frames per second
 height_m, mass_kg  float64    ()            the character's height and mass
 layout             str        ()            keypoint layout
@@ -133,6 +135,7 @@ def result_arrays(
         "method": np.array(method),
         **{k: np.asarray(result[k], np.float32) for k in MOTION_FIELDS},
         "keypoints2d": np.asarray(clip.keypoints, np.float32),
+        **({"certified": np.asarray(result["certified"], bool)} if result.get("certified") is not None else {}),
         "fps": np.array(clip.fps, np.float64),
         "height_m": np.array(height_m, np.float64),
         "mass_kg": np.array(mass_kg, np.float64),
@@ -193,6 +196,12 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
         out[key] = a
     if T == 0:
         raise FormatError(f"{path}: field 'q' has no frames")
+    out["certified"] = None
+    if "certified" in data:
+        a = data["certified"]
+        if a.shape != (T,) or a.dtype.kind != "b":
+            raise FormatError(f"{path}: field 'certified' has shape {a.shape} ({a.dtype}), expected ({T},) booleans")
+        out["certified"] = a
     for key, shape in _STATIC.items():
         if key in data:
             a = data[key]

@@ -59,6 +59,7 @@ __all__ = [
     "friction_pyramid_rows",
     "project_friction_pyramid",
     "project_velocity",
+    "sole_half_width",
     "solve_projection",
     "tangent_basis",
 ]
@@ -93,6 +94,22 @@ class ContactPoints:
             names=tuple(model.topo.site_names[s] for s in ids),
             site_ids=ids,
         )
+
+
+def sole_half_width(model: Model) -> float:
+    """Half the width (m) of the character's soles: the largest lateral half-size of the box
+    geoms on the bodies that carry the foot contact sites (0 when there are none). Read from the
+    compiled MuJoCo model, so it follows a rescaled character."""
+    import mujoco
+
+    mj = model.mj
+    bodies = {model.topo.site_body[s] for s in model.topo.contact_sites}
+    sizes = [
+        float(mj.geom_size[g, 1])
+        for g in range(mj.ngeom)
+        if int(mj.geom_bodyid[g]) in bodies and int(mj.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_BOX)
+    ]
+    return max(sizes, default=0.0)
 
 
 def default_contact_points(model: Model) -> ContactPoints:

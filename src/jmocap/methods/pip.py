@@ -1,0 +1,284 @@
+"""``pip``: physical dynamics by PIP's dual PD controller and motion-tracking QP (Yi et al. 2022,
+Sec. 3.2), driven by TPNet's kinematic target.
+
+TPNet's target pose (:func:`~jmocap.methods.stages.target_pose`) is the reference. Per frame,
+``iterations`` steps of ``dt = 1 / (fps iterations)``, each:
+
+1. rigid-body terms ``M``, ``h`` and the foot contact points at the current state;
+2. the contact state as PIP decides it (:func:`jmocap.physics.tracking.contact_state`): a point
+   is in contact when it touches the floor (< 0.5 cm), or is near it (< 3 cm) and TPNet's
+   contact probability says so;
+3. the dual PD controller (PIP eqs. 3-5): desired accelerations of the rotational dofs (root
+   orientation and hinges, towards the target pose) and of every body origin in the world
+   (towards the target pose's body positions; PIP has no position reference and extrapolates
+   the current positions by estimated velocities, jmocap has TPNet's global pose and uses it);
+   both with a velocity feed-forward from the target's backward differences;
+4. the motion-tracking QP (PIP eq. 7, :func:`jmocap.physics.tracking.solve_tracking`) over the
+   acceleration and the contact forces: tracking + residual, torque and Signorini penalties,
+   subject to the friction pyramid and no sliding at points in contact and to *unconditional*
+   non-penetration of every foot point;
+5. the semi-implicit Euler step (PIP eq. 13 with the new velocity in the position update).
+
+The root therefore moves only by gravity, the contact forces and a heavily penalised residual
+root wrench; the joint torques are ``M qdd + h - J_c^T lambda``. Causal (frame t depends on
+frames <= t), ``lax.scan`` over frames, chunked with the state carried like ``physcap``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jmocap import physics as P
+from jmocap.constants import FRICTION_MU
+from jmocap.inputs import ClipInputs
+from jmocap.methods import stages as S
+from jmocap.methods.base import Method, register, static
+from jmocap.methods.kinematic import KinematicConfig
+from jmocap.methods.kinematic import init_params as init_tpnet_params
+from jmocap.methods.physcap import CycleState, init_carry, rest_state
+from jmocap.model import Model
+from jmocap.motion import Motion
+from jmocap.physics.contact import sole_half_width
+from jmocap.physics.tracking import TrackingWeights, contact_state, solve_qp, tracking_qp
+
+Array = jnp.ndarray
+
+
+@struct.dataclass
+class PIPConfig(KinematicConfig):
+    """Structure (static) and physical parameters (traced) of the ``pip`` method."""
+
+    iterations: int = static(2)  # steps per frame (PIP: one step at 60 fps)
+    # --- dual PD controller (PIP eqs. 3, 5; gains in 1/s^2 and 1/s) ---
+    kp_rot: float = 1600.0  # PIP k_p_theta = 2400
+    kd_rot: float = 80.0  # PIP k_d_theta = 60
+    kp_pos: float = 400.0  # PIP k_p_r = 3600
+    kd_pos: float = 40.0  # PIP k_d_r = 60
+    feedforward: float = 0.0  # weight of the target's velocity in the D terms (0: damp to rest)
+    # horizontal pull of the root towards the target's (1/s^2); the position PD itself acts on
+    # root-relative body positions, so the global height and translation come from the contacts,
+    # gravity and the velocity terms (as in PIP), not from TPNet's absolute depth
+    kp_anchor: float = 25.0
+    kd_anchor: float = 10.0
+    velocity_smoothing_s: float = 0.2  # time constant of the causal filter of the root's target velocity
+    # --- contact state (PIP Sec. 3.2.3) ---
+    contact_threshold: float = 0.5
+    contact_touch_m: float = 0.005
+    contact_near_m: float = 0.03
+    # --- tracking QP (PIP eq. 7; see jmocap.physics.tracking) ---
+    mu: float = FRICTION_MU
+    w_rotation: float = 1.0
+    w_position: float = 1.0
+    w_residual: float = 300.0
+    w_torque: float = 0.01
+    w_signorini: float = 100.0
+    w_regularisation: float = 0.1
+    w_slip: float = 1.0
+
+    def weights(self) -> TrackingWeights:
+        return TrackingWeights(self.w_rotation, self.w_position, self.w_residual, self.w_torque,
+                               self.w_signorini, self.w_regularisation, self.w_slip)
+
+
+def init_params(key: Array, model: Model, config: PIPConfig = PIPConfig()) -> dict:
+    """Fresh parameters: TPNet only (the dynamics have no network)."""
+    return init_tpnet_params(key, model, config)
+
+
+def tracked_bodies(model: Model) -> np.ndarray:
+    """The bodies whose world origins the position PD tracks: every body but the world."""
+    return np.arange(1, model.topo.nbody)
+
+
+@struct.dataclass
+class Reference:
+    """One frame of the kinematic reference."""
+
+    q: Array  # (nq,) target pose
+    qd: Array  # (nv,) its backward-difference velocity
+    pos: Array  # (B, 3) world origins of the tracked bodies
+    vel: Array  # (B, 3) their backward-difference velocities
+    root_vel: Array  # (3,) the root's target velocity, causally low-pass filtered
+    prob: Array  # (4,) contact probabilities
+
+
+def reference(model: Model, q_hat: Array, prob: Array, fps, smoothing_s=0.2, init_vel=None) -> Reference:
+    """The per-frame reference from the target poses (T, nq) (backward differences and a
+    first-order low-pass filter of the root velocity with time constant ``smoothing_s``, both
+    causal; ``init_vel`` is the filter's state before the first frame, default its first value)."""
+    bodies = tracked_bodies(model)
+    pos = jax.vmap(lambda q: P.forward_kinematics(model, q).xpos[bodies])(q_hat)
+    fps = jnp.asarray(fps, q_hat.dtype)
+    vel = jnp.concatenate([jnp.zeros_like(pos[:1]), pos[1:] - pos[:-1]]) * fps
+    a = 1.0 - jnp.exp(-1.0 / (fps * jnp.maximum(smoothing_s, 1e-6)))
+
+    def lowpass(v, x):
+        v = v + a * (x - v)
+        return v, v
+
+    _, root_vel = jax.lax.scan(lowpass, vel[0, 0] if init_vel is None else init_vel, vel[:, 0])
+    return Reference(q_hat, P.finite_difference_velocity(model, q_hat, fps), pos, vel, root_vel, prob)
+
+
+def sole_points(model: Model, kin) -> tuple[Array, np.ndarray, Array]:
+    """The contact points of the tracking QP: each foot contact site (heel, toe) widened to a pair
+    of points at +- the sole's half-width along its body's lateral axis, so that a foot can
+    carry a moment about its long axis (PIP uses the four corners of a square per foot joint).
+    Returns positions (8, 3), static body ids (8,) and heights above the floor (8,), ordered
+    site by site (the pair of site i at 2i, 2i + 1)."""
+    sites = np.asarray(model.topo.contact_sites)
+    bodies = np.asarray(model.topo.site_body)[sites]
+    centre = P.site_positions(model, None, sites, kin=kin)
+    lateral = kin.xmat[bodies][:, :, 1]  # the bodies' y axes in the world
+    half = sole_half_width(model)
+    pts = (centre[:, None, :] + jnp.asarray([-half, half], centre.dtype)[None, :, None] * lateral[:, None, :])
+    pts = pts.reshape(-1, 3)
+    return pts, np.repeat(bodies, 2), pts[:, 2]
+
+
+@struct.dataclass
+class StepOutput:
+    tau: Array  # (nv,)
+    grf: Array  # (4, 3)
+    certified: Array  # () bool
+    in_contact: Array  # (4,) bool
+
+
+def step_qp(model: Model, state: CycleState, ref: Reference, dt, config: PIPConfig, in_contact=None):
+    """The tracking QP of one step (:func:`jmocap.physics.tracking.tracking_qp`) and the contact
+    state it used (PIP's rule, or ``in_contact`` (8,) when given)."""
+    q, qd = state.q, state.qd
+    body = S.rigid_body_terms(model, q, qd)
+    kin = body.kin
+    pts, bodies_c, height = sole_points(model, kin)
+    if in_contact is None:
+        in_contact = contact_state(height, jnp.repeat(ref.prob, 2), touch=config.contact_touch_m,
+                                   near=config.contact_near_m, threshold=config.contact_threshold)
+
+    # dual PD (PIP eqs. 3, 5): rotations towards the target pose; body positions towards the
+    # target's root-relative ones; the root's translation by a horizontal anchor and the
+    # filtered target velocity (TPNet's absolute height and depth are not tracked)
+    ff = config.feedforward
+    e = S.pd_error(model, ref.q, q)
+    acc_rot = config.kp_rot * e[3:] + config.kd_rot * (ff * ref.qd[3:] - qd[3:])
+    bodies = tracked_bodies(model)
+    Jb, _ = P.point_jacobian(model, kin, kin.xpos[bodies], bodies)
+    r, rd = kin.xpos[bodies], Jb @ qd
+    horizontal = jnp.asarray([1.0, 1.0, 0.0], r.dtype)
+    acc_pos = (config.kp_pos * ((ref.pos - ref.pos[:1]) - (r - r[:1]))
+               + config.kd_pos * (ff * (ref.vel - ref.vel[:1]) - (rd - rd[:1]))
+               + horizontal * config.kp_anchor * (ref.pos[:1] - r[:1])
+               + config.kd_anchor * (ref.root_vel - rd[:1]))
+    qp = tracking_qp(model, kin, body.M, body.h, qd, acc_rot, bodies, acc_pos, pts, bodies_c, height,
+                     in_contact, dt, mu=config.mu, weights=config.weights())
+    return qp, in_contact
+
+
+def step(model: Model, state: CycleState, ref: Reference, dt, config: PIPConfig) -> tuple[CycleState, StepOutput]:
+    """One step of the dual PD controller and the tracking QP (see the module docstring)."""
+    qp, in_contact = step_qp(model, state, ref, dt, config)
+    sol = solve_qp(qp)
+    q_new, qd_new = P.integrate(model, state.q, state.qd, sol.qdd, dt)
+    grf = sol.grf.reshape(-1, 2, 3).sum(1)  # each site's pair of sole points
+    return CycleState(q_new, qd_new, grf), StepOutput(sol.tau, grf, sol.certified, in_contact.reshape(-1, 2).any(1))
+
+
+@struct.dataclass
+class FrameOutput:
+    q: Array
+    qd: Array
+    tau: Array  # mean over the frame's steps
+    grf: Array  # mean over the frame's steps
+    certified: Array  # () bool: every QP of the frame was certified
+
+
+def simulate(model: Model, ref: Reference, mask: Array, fps, config: PIPConfig = PIPConfig(), *,
+             init: CycleState | None = None) -> tuple[CycleState, FrameOutput]:
+    """The tracking dynamics over frames (``lax.scan``), ``iterations`` steps per frame; padding
+    frames (mask False) leave the state unchanged."""
+    dtype = ref.q.dtype
+    k = config.iterations
+    dt = (1.0 / jnp.asarray(fps, dtype)) / k
+    if init is None:
+        init = rest_state(ref.q[0], model.nv)
+
+    def frame(state, xs):
+        r, real = xs
+
+        def iteration(s, _):
+            return step(model, s, r, dt, config)
+
+        new, steps = jax.lax.scan(iteration, state, None, length=k)
+        new = jax.tree.map(lambda a, b: jnp.where(real, a, b), new, state)
+        out = FrameOutput(new.q, new.qd, steps.tau.mean(0), steps.grf.mean(0), jnp.all(steps.certified) | ~real)
+        return new, out
+
+    return jax.lax.scan(frame, init, (ref, mask))
+
+
+def _motion(out: FrameOutput, ref: Reference, mask) -> Motion:
+    return Motion(out.q, out.qd, out.tau, out.grf, ref.prob, ref.q, mask, certified=out.certified)
+
+
+def reconstruct(params: dict, model: Model, inputs: ClipInputs, config: PIPConfig = PIPConfig()) -> Motion:
+    """2D keypoints of one clip -> physically plausible :class:`Motion` (see the module doc)."""
+    tp = S.target_pose(params, model, inputs, config)
+    ref = reference(model, tp.q_hat, S.contact_probability(tp.contact_logits), inputs.fps,
+                    config.velocity_smoothing_s)
+    mask = jnp.asarray(inputs.mask)
+    _, out = simulate(model, ref, mask, inputs.fps, config)
+    return _motion(out, ref, mask)
+
+
+def history(config) -> int:
+    """TPNet's receptive field (as ``kinematic``); it includes the frame before the chunk that
+    the reference's backward differences need."""
+    return 2 * config.nets.window - 1
+
+
+def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry: CycleState, first, config: PIPConfig,
+                      history: int) -> tuple[CycleState, Motion]:
+    """One chunk of one clip (see :func:`jmocap.methods.physcap.reconstruct_chunk`)."""
+    H = history
+    tp = S.target_pose(params, model, inputs, config)
+    ref = reference(model, tp.q_hat, S.contact_probability(tp.contact_logits), inputs.fps,
+                    config.velocity_smoothing_s)
+    ref = jax.tree.map(lambda a: a[H:], ref)
+    mask = jnp.asarray(inputs.mask)[H:]
+    fresh = CycleState(ref.q[0], jnp.zeros_like(carry.qd), jnp.zeros_like(carry.grf))
+    init = jax.tree.map(lambda a, b: jnp.where(first, a, b), fresh, carry)
+    state, out = simulate(model, ref, mask, inputs.fps, config, init=init)
+    return state, _motion(out, ref, mask)
+
+
+METHOD = register(
+    Method(
+        name="pip",
+        summary="physical dynamics: PIP's dual PD controller and motion-tracking QP over "
+        "accelerations and contact forces (friction pyramid, no slip, unconditional non-penetration)",
+        paper="002 (PIP), Sec. 3.2, on 000's (Neural PhysCap) kinematic target",
+        config_type=PIPConfig,
+        reconstruct=reconstruct,
+        reconstruct_chunk=reconstruct_chunk,
+        init_carry=init_carry,
+        history=history,
+        init_params=init_params,
+    )
+)
+
+__all__ = [
+    "METHOD",
+    "PIPConfig",
+    "Reference",
+    "init_params",
+    "reconstruct",
+    "reconstruct_chunk",
+    "reference",
+    "simulate",
+    "step",
+    "step_qp",
+    "tracked_bodies",
+]

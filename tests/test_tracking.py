@@ -1,0 +1,225 @@
+"""The tracking QP of the ``pip`` method (PIP's motion optimiser, jmocap.physics.tracking).
+
+References: finite differences for the bias acceleration and the gradients, Clarabel (interior
+point, float64) for the QP solutions on >= 1,000 instances taken from real cycle states, and
+hand-worked cases for the contact rule and unconditional non-penetration.
+"""
+
+from __future__ import annotations
+
+from importlib.resources import files
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jmocap import physics as P
+from jmocap.data.clip import load_clip
+from jmocap.inputs import ClipInputs
+from jmocap.methods import pip
+from jmocap.methods import stages as S
+from jmocap.model import load_model
+from jmocap.physics.qp import solve_projection_info
+from jmocap.physics.tracking import contact_state, point_bias_acceleration, solve_qp
+from jmocap.pipeline import subject_model
+from jmocap.weights import load_run_params
+from qp_reference import clarabel_projection, polished_projection
+
+DEMO = files("jmocap") / "assets/demo/ground_truth"
+
+
+def _random_state(model, rng, dtype=np.float64):
+    q = np.asarray(model.qpos0, dtype).copy()
+    q[2] = 1.0
+    axis = rng.normal(size=3)
+    angle = rng.uniform(0, 0.5)
+    q[3:7] = np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis / np.linalg.norm(axis)])
+    hq = model.topo.hinge_qadr
+    q[hq] = rng.uniform(-0.4, 0.4, size=hq.size)
+    qd = rng.normal(size=model.nv).astype(dtype)
+    return jnp.asarray(q), jnp.asarray(qd)
+
+
+def test_point_bias_acceleration_matches_finite_differences(enable_x64):
+    """Jdot qd of body origins and offset points = d/ds [J(q(s)) qd] along q(s) = q (+) s qd."""
+    model = load_model()
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        q, qd = _random_state(model, rng)
+        bodies = np.arange(1, model.topo.nbody)
+        offset = jnp.asarray(rng.normal(scale=0.1, size=(bodies.size, 3)))
+
+        def points(q):
+            kin = P.forward_kinematics(model, q)
+            return kin, kin.xpos[bodies] + jnp.einsum("bij,bj->bi", kin.xmat[bodies], offset)
+
+        def velocity(s):
+            kin, p = points(P.integrate_positions(model, q, qd, s))
+            J, _ = P.point_jacobian(model, kin, p, bodies)
+            return J @ qd
+
+        h = 1e-5
+        fd = (velocity(h) - velocity(-h)) / (2 * h)
+        kin, p = points(q)
+        got = point_bias_acceleration(model, kin, qd, p, bodies)
+        np.testing.assert_allclose(got, fd, rtol=1e-6, atol=1e-6 * float(jnp.max(jnp.abs(fd))))
+
+
+def test_contact_state_is_pips_rule():
+    height = jnp.array([0.004, 0.004, 0.02, 0.02, 0.04, 0.04, -0.01, -0.01])
+    prob = jnp.array([0.1, 0.9, 0.1, 0.9, 0.1, 0.9, 0.1, 0.9])
+    got = contact_state(height, prob)
+    # touching: always; near (< 3 cm): when the estimator says so; above 3 cm: never
+    np.testing.assert_array_equal(got, [True, True, False, True, False, False, True, True])
+
+
+def _demo_cycle(names=("demo_walk", "demo_run", "demo_jump"), frames=120):
+    """Cycle states of the pip method on the demo clips: (model, config, states, refs, dt)."""
+    params, config = load_run_params(None, method="pip")
+    dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    params = jax.tree.map(lambda a: jnp.asarray(a, dtype), params)
+    out = []
+    for name in names:
+        clip = load_clip(DEMO / f"{name}.npz").slice(0, frames)
+        model = subject_model(clip)
+        inputs = ClipInputs.from_clip(clip)
+        inputs = inputs.replace(keypoints=jnp.asarray(inputs.keypoints, dtype))
+
+        @jax.jit
+        def run(params, inputs, model=model):
+            tp = S.target_pose(params, model, inputs, config)
+            ref = pip.reference(model, tp.q_hat, S.contact_probability(tp.contact_logits), inputs.fps,
+                                config.velocity_smoothing_s)
+            _, fo = pip.simulate(model, ref, jnp.asarray(inputs.mask), inputs.fps, config)
+            return ref, fo
+
+        ref, fo = run(params, inputs)
+        out.append((model, ref, fo, 1.0 / clip.fps / config.iterations))
+    return config, out
+
+
+def _objective(qp, x):
+    H, g = np.asarray(qp.H, np.float64), np.asarray(qp.g, np.float64)
+    return 0.5 * x @ H @ x - g @ x
+
+
+def _solve_x(qp):
+    info = solve_projection_info(None, qp.G, qp.v, qp.lower, chol=qp.L)
+    return info.x, info.converged
+
+
+def test_tracking_qp_matches_clarabel_on_cycle_states(enable_x64):
+    """>= 1,000 QPs from the cycle's own states on the demo clips (each frame's state with PIP's
+    contact state, and with every point, none, the heels only and the toes only in contact):
+    jmocap's exact solver certifies each one and reaches Clarabel's optimum."""
+    config, runs = _demo_cycle(("demo_walk", "demo_run"))
+    n = 0
+    patterns = jnp.array([[1] * 8, [0] * 8, [1, 1, 0, 0, 1, 1, 0, 0], [0, 0, 1, 1, 0, 0, 1, 1]], bool)
+    for model, ref, fo, dt in runs:
+        T = fo.q.shape[0]
+        states = pip.CycleState(fo.q, fo.qd, jnp.zeros((T, 4, 3)))
+        rule = jax.jit(jax.vmap(lambda s, r, model=model, dt=dt: pip.step_qp(model, s, r, dt, config)[0]))
+        given = jax.jit(jax.vmap(lambda s, r, o, model=model, dt=dt: pip.step_qp(model, s, r, dt, config, o)[0],
+                                 in_axes=(0, 0, None)))
+        for qps in [rule(states, ref)] + [given(states, ref, o) for o in patterns]:
+            xs, ok = jax.jit(jax.vmap(_solve_x))(qps)
+            assert bool(jnp.all(ok)), "a float64 tracking QP was not certified"
+            for t in range(T):
+                qp = jax.tree.map(lambda a, t=t: np.asarray(a[t]), qps)
+                x_ref, status = polished_projection(qp.H, qp.G, qp.v, qp.lower)
+                assert status in ("polished", "Solved", "AlmostSolved"), status
+                x = np.asarray(xs[t], np.float64)
+                # feasible, and the same optimal value (the optimum is unique; x itself is
+                # as accurate as H's conditioning allows)
+                finite = np.isfinite(qp.lower)
+                slack = qp.G[finite] @ x - qp.lower[finite]
+                assert slack.min() >= -1e-7 * (1 + np.abs(qp.lower[finite]).max())
+                f, f_ref = _objective(qp, x), _objective(qp, x_ref)
+                assert f <= f_ref + 1e-8 * (1 + abs(f_ref)), (t, f, f_ref)
+                n += 1
+    assert n >= 1000, n
+
+
+def test_float32_cycle_is_certified_and_finite():
+    """The shipped precision: every QP of the demo clips' cycle certified, forces in the pyramid."""
+    _, runs = _demo_cycle(("demo_walk", "demo_run"))
+    for model, ref, fo, _ in runs:
+        assert fo.q.dtype == jnp.float32 and fo.grf.dtype == jnp.float32
+        assert bool(jnp.all(jnp.isfinite(fo.q))) and bool(jnp.all(jnp.isfinite(fo.grf)))
+        assert float(jnp.mean(~fo.certified)) <= 0.001
+        f = np.asarray(fo.grf)
+        fz = f[..., 2]
+        assert fz.min() >= -1e-3 * fz.max()
+        assert np.all(np.abs(f[..., 0]) + np.abs(f[..., 1]) <= 0.8 * fz + 1e-3 * fz.max() + 1e-3)
+
+
+def test_walking_left_and_right_forces_are_not_the_same_curve():
+    """Regression: the shipped physcap config gave L and R vertical GRF correlated at 0.999."""
+    _, runs = _demo_cycle(("demo_walk",))
+    _, _, fo, _ = runs[0]
+    g = np.asarray(fo.grf)
+    left, right = g[:, 0, 2] + g[:, 1, 2], g[:, 2, 2] + g[:, 3, 2]
+    assert np.std(left) > 0 and np.std(right) > 0
+    assert np.corrcoef(left, right)[0, 1] < 0.5
+    assert np.max(np.abs(left - right)) > 0.2 * np.max(left + right)
+
+
+@pytest.mark.parametrize("shift", [0.02, 0.0, -0.02])
+@pytest.mark.parametrize("contact", [True, False])
+def test_non_penetration_is_unconditional(enable_x64, shift, contact):
+    """Above, touching, below the floor; in contact or not: every sole point ends the step on or
+    above the floor; a point above may move down to it; the solution is Clarabel's."""
+    model = load_model()
+    config = pip.PIPConfig()
+    q = jnp.asarray(model.mj.key_qpos[0] if model.mj.nkey else model.qpos0, jnp.float64)
+    q = q.at[2].add(shift)
+    qd = jnp.zeros(model.nv).at[2].set(-3.0)  # moving down fast: free, it would pass the floor
+    bodies = pip.tracked_bodies(model)
+    pos = P.forward_kinematics(model, q).xpos[bodies]
+    T = 1
+    ref = pip.Reference(q[None], jnp.zeros((T, model.nv)), pos[None] - jnp.array([0, 0, 0.3]),
+                        jnp.zeros((T, bodies.size, 3)), jnp.array([[0.0, 0.0, -2.0]]), jnp.ones((T, 4)))
+    ref = jax.tree.map(lambda a: a[0], ref)
+    dt = 1.0 / 60
+    state = pip.CycleState(q, qd, jnp.zeros((4, 3)))
+    qp, _ = pip.step_qp(model, state, ref, dt, config, jnp.full(8, contact))
+    sol = solve_qp(qp)
+    assert bool(sol.certified)
+    kin = P.forward_kinematics(model, q)
+    pts, b, height = pip.sole_points(model, kin)
+    J, _ = P.point_jacobian(model, kin, pts, b)
+    z_next = np.asarray(height + dt * (J[:, 2] @ (qd + dt * sol.qdd)))
+    assert z_next.min() >= -1e-9
+    # the lowest point lands on the floor, not above it (a point above may always move down)
+    assert z_next.min() < 1e-9
+    x_ref, _, _ = clarabel_projection(qp.H, qp.G, qp.v, qp.lower)
+    x = np.asarray(_solve_x(qp)[0], np.float64)
+    assert _objective(qp, x) <= _objective(qp, x_ref) + 1e-9 * (1 + abs(_objective(qp, x_ref)))
+    if not contact:
+        np.testing.assert_array_equal(np.asarray(sol.grf), 0.0)
+
+
+def test_gradients_match_finite_differences(enable_x64):
+    """d(qdd, grf)/d(target) through the exact QP (active constraints included)."""
+    model = load_model()
+    config = pip.PIPConfig()
+    q = jnp.asarray(model.mj.key_qpos[0] if model.mj.nkey else model.qpos0, jnp.float64).at[2].add(0.002)
+    qd = jnp.zeros(model.nv).at[0].set(0.3)
+    bodies = pip.tracked_bodies(model)
+    pos = P.forward_kinematics(model, q).xpos[bodies]
+    dt = 1.0 / 60
+    state = pip.CycleState(q, qd, jnp.zeros((4, 3)))
+    w = jnp.asarray(np.random.default_rng(1).normal(size=model.nv + 24))
+
+    def f(root_vel):
+        ref = pip.Reference(q, jnp.zeros(model.nv), pos, jnp.zeros((bodies.size, 3)), root_vel, jnp.ones(4))
+        sol = solve_qp(pip.step_qp(model, state, ref, dt, config)[0])
+        assert bool(sol.certified)
+        return jnp.concatenate([sol.qdd, sol.grf.reshape(-1) / 100.0]) @ w
+
+    x0 = jnp.array([0.5, -0.2, 0.1])
+    g = jax.grad(f)(x0)
+    h = 1e-6
+    fd = np.array([(f(x0.at[i].add(h)) - f(x0.at[i].add(-h))) / (2 * h) for i in range(3)])
+    np.testing.assert_allclose(np.asarray(g), fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
