@@ -29,7 +29,7 @@ Every jmocap configuration at batch 64 and 512 is also run with the batch sharde
 CPU device per core (``--xla_force_host_platform_device_count``, a ``NamedSharding`` over the
 clip axis, as ``jmocap.batch`` does): XLA's CPU backend runs one device's program on one thread.
 
-Usage:  python experiments/bench_reconstruct.py [--quick [--mjx]] [--profile] [--large-frames N]
+Usage:  python experiments/bench_reconstruct.py [--quick [--mjx]] [--pip] [--profile] [--large-frames N]
         python experiments/bench_reconstruct.py --one BATCH FRAMES BACKEND   (one configuration)
 """
 
@@ -106,10 +106,17 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
     from jmocap.methods import PhysCapConfig, get_method
     from jmocap.model import load_model
 
-    reconstruct = get_method("physcap").reconstruct
     model = load_model(with_mjx=backend == "mjx")
-    params, cfg, source = load_params(model, PhysCapConfig())
-    cfg = cfg.replace(physics_backend=backend)
+    if backend == "pip":  # the pip method (dual PD + tracking QP), its shipped config
+        from jmocap.weights import load_run_params
+
+        reconstruct = get_method("pip").reconstruct
+        params, cfg = load_run_params(None, method="pip")
+        source = "shipped weights"
+    else:
+        reconstruct = get_method("physcap").reconstruct
+        params, cfg, source = load_params(model, PhysCapConfig())
+        cfg = cfg.replace(physics_backend=backend)
     inputs = make_inputs(batch, frames)
     if devices > 1:
         if len(jax.devices()) < devices or batch % devices:
@@ -270,6 +277,7 @@ def main(argv=None):
     ap.add_argument("--large-frames", type=int, default=30,
                     help="frames per clip at batch 512 (extrapolated per frame; 300 takes too long)")
     ap.add_argument("--devices", type=int, default=1, help=argparse.SUPPRESS)  # with --one
+    ap.add_argument("--pip", action="store_true", help="also the pip method (backend column 'pip')")
     args = ap.parse_args(argv)
     if args.one:
         b, f, backend = args.one
@@ -295,6 +303,11 @@ def main(argv=None):
         if cores > 1:  # the batch sharded over one host device per core (as jmocap.batch does)
             configs += [(64, CLIP_FRAMES, "jmocap", cores), (512, args.large_frames, "jmocap", cores)]
         configs += [(1, args.mjx_frames, "mjx", 1)]
+    if args.pip:  # the pip method beside physcap at the same batches
+        configs += [(64, CLIP_FRAMES if not args.quick else 30, "pip", 1),
+                    (512 if not args.quick else 8, args.large_frames, "pip", 1)]
+        if cores > 1:
+            configs += [(512 if not args.quick else 8, args.large_frames, "pip", cores)]
     print(f"machine: {machine()}  (OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']})", flush=True)
     rows = []
     for b, f, backend, ndev in configs:
@@ -334,6 +347,12 @@ def main(argv=None):
             r = big["fps"] / mjx_fps
             print(f"  >= 100x the MJX backend: {r:,.0f}x  {'met' if r >= 100 else 'NOT met'}"
                   + (f" (same batch 1: {same[0]['fps'] / mjx_fps:,.0f}x)" if same else ""))
+    pp = [r for r in ok if r["backend"] == "pip"]
+    for r in pp:
+        ref = [j for j in jm if j["batch"] == r["batch"] and j["devices"] == r["devices"]]
+        ratio = f"{r['fps'] / ref[0]['fps']:.2f}x physcap's" if ref else "no physcap row at this batch"
+        print(f"  pip, batch {r['batch']}, {r['devices']} host device(s): {r['fps']:,.0f} frames/s "
+              f"({'met' if r['fps'] >= 500 else 'NOT met'}: >= 500), {ratio}")
     if args.profile:
         for b in args.profile_batch or [8 if args.quick else 512]:
             profile(b)

@@ -4,19 +4,20 @@ Sec. 3.2), driven by TPNet's kinematic target.
 TPNet's target pose (:func:`~jmocap.methods.stages.target_pose`) is the reference. Per frame,
 ``iterations`` steps of ``dt = 1 / (fps iterations)``, each:
 
-1. rigid-body terms ``M``, ``h`` and the foot contact points at the current state;
+1. rigid-body terms ``M``, ``h`` and the contact points: each foot site widened to a pair of
+   sole points (:func:`sole_points`);
 2. the contact state as PIP decides it (:func:`jmocap.physics.tracking.contact_state`): a point
    is in contact when it touches the floor (< 0.5 cm), or is near it (< 3 cm) and TPNet's
    contact probability says so;
-3. the dual PD controller (PIP eqs. 3-5): desired accelerations of the rotational dofs (root
-   orientation and hinges, towards the target pose) and of every body origin in the world
-   (towards the target pose's body positions; PIP has no position reference and extrapolates
-   the current positions by estimated velocities, jmocap has TPNet's global pose and uses it);
-   both with a velocity feed-forward from the target's backward differences;
-4. the motion-tracking QP (PIP eq. 7, :func:`jmocap.physics.tracking.solve_tracking`) over the
-   acceleration and the contact forces: tracking + residual, torque and Signorini penalties,
-   subject to the friction pyramid and no sliding at points in contact and to *unconditional*
-   non-penetration of every foot point;
+3. the dual PD controller (PIP eqs. 3, 5): desired accelerations of the rotational dofs (root
+   orientation and hinges, towards the target pose) and of every body origin (towards the
+   target's root-relative body positions, plus a horizontal anchor of the root and its filtered
+   target velocity; PIP has no position reference, and TPNet's absolute height and depth are
+   not tracked, so the body's height comes from gravity and the contacts);
+4. the motion-tracking QP (PIP eq. 7, :func:`jmocap.physics.tracking.tracking_qp`) over the
+   acceleration and the contact forces: tracking + residual, torque, Signorini and
+   sticking-contact penalties, subject to the friction pyramid at points in contact and to
+   *unconditional* non-penetration of every sole point;
 5. the semi-implicit Euler step (PIP eq. 13 with the new velocity in the position update).
 
 The root therefore moves only by gravity, the contact forces and a heavily penalised residual
