@@ -434,3 +434,16 @@ def test_evaluate_arrays_keys_follow_the_inputs_and_are_never_nan():
     # ... unless that frame is padding
     assert "mpjpe_mm" in M.evaluate_arrays({"keypoints3d": bad}, {"keypoints3d": gt}, fps=30.0,
                                            mask=np.array([True, False]))
+
+
+def test_friction_cone_violation_hand_worked():
+    """Interior frames only; pulling, outside mu = 0.8, and small (flight) forces by hand."""
+    from jmocap.metrics import friction_cone_violation
+
+    f = np.array([[0, 0, 700.0], [0, 0, 700], [500, 0, 700], [600, 0, 700], [0, 0, -300], [1, 1, 5],
+                  [0, 0, 700], [0, 0, 700]])
+    # frames 1-6 count: 500/700 = 0.71 inside; 600/700 = 0.86 outside; -300 pulls; 5 N is flight
+    np.testing.assert_allclose(float(friction_cone_violation(f, 700.0)), 100 * 2 / 6, rtol=1e-6)
+    mask = np.ones(8, bool)
+    mask[3] = False  # frames 2-4 lose their central difference: 1, 5, 6 remain, all admissible
+    np.testing.assert_allclose(float(friction_cone_violation(f, 700.0, mask)), 0.0, atol=1e-6)

@@ -39,7 +39,7 @@ import numpy as np
 
 from jmocap import physics as P
 from jmocap.camera import Camera, default_extrinsics, project
-from jmocap.constants import GRAVITY  # the body weight is mass * GRAVITY
+from jmocap.constants import FRICTION_MU, GRAVITY  # the body weight is mass * GRAVITY
 from jmocap.model import Model, character
 from jmocap.numerics import safe_div, safe_normalize
 from jmocap.physics.contact import sole_half_width
@@ -667,6 +667,22 @@ def motion_quantities(model: Model, q: Array, fps, layout: str = "body25", half_
     return dict(keypoints3d=kp, feet=feet, support=support, zmp=zmp, implied_force=force)
 
 
+def friction_cone_violation(force: Array, weight, mask=None, *, mu: float = FRICTION_MU,
+                            min_force: float = 0.05) -> Array:
+    """% of frames whose motion needs an external force ``force`` (T, 3) (the motion's
+    ``m (c'' - g)``, :func:`zero_moment_point`) that the floor cannot give: pulling
+    (``f_z < 0``) or outside the Coulomb cone ``|f_h| > mu f_z``. Frames needing less than
+    ``min_force`` body weights (flight) are admissible; the first and last frame (one-sided
+    differences) are not counted."""
+    f = jnp.asarray(force)
+    w = _bcast(weight, f.dtype, 1)
+    fz, fh = f[..., 2], jnp.sqrt(f[..., 0] ** 2 + f[..., 1] ** 2 + 1e-30)
+    big = jnp.sqrt(fz * fz + fh * fh) > min_force * w
+    bad = big & ((fz < 0) | (fh > mu * fz))
+    wm = _central_mask(_frame_mask(mask, bad.shape))  # the edge frames' differences are one-sided
+    return _pct(jnp.sum(bad * wm, -1), jnp.sum(wm, -1))
+
+
 def zero_moment_point(model: Model, q: Array, fps, *, kin=None) -> tuple[Array, Array]:
     """The (fictitious) zero-moment point of a motion ``q`` (T, nq): ``(zmp (T, 2), force (T, 3))``.
 
@@ -734,6 +750,7 @@ METRICS: dict[str, MetricInfo] = {
     "grf_ballistic_pct_bw": MetricInfo("ballistic GRF (median in flight)", "% BW", "lower", "[001] Tab. 2"),
     "root_residual_pct_bw": MetricInfo("residual root force", "% BW", "lower", "[000] Fig. 4d"),
     "zmp_dist_m": MetricInfo("ZMP distance to support polygon", "m", "lower", "[002] Sec. 4"),
+    "cone_violation_pct": MetricInfo("motion needs force outside the friction cone", "%", "lower", "jmocap"),
     "grf_err_pct_bw": MetricInfo("net GRF error vs ground truth", "% BW", "lower", "jmocap"),
     "torque_err_nm_kg": MetricInfo("joint torque error vs ground truth", "N m/kg", "lower", "jmocap"),
     "contact_acc_pct": MetricInfo("contact accuracy", "%", "higher", "[001] Fig. E1"),
@@ -863,6 +880,8 @@ def _metric_values(p, g, m, fps, camera, root, pred_mass, gt_mass) -> dict[str, 
     if all(p.get(k) is not None for k in ("zmp", "implied_force", "support", "feet")) and pw is not None:
         on = jnp.repeat(contact_labels(p["feet"]), p["support"].shape[1] // p["feet"].shape[1], axis=-1)
         out["zmp_dist_m"] = zmp_distance(p["zmp"], p["implied_force"][:, 2], pw, p["support"], on, m)
+    if p.get("implied_force") is not None and pw is not None:
+        out["cone_violation_pct"] = friction_cone_violation(p["implied_force"], pw, m)
     if p.get("grf") is not None and g.get("grf") is not None and pw is not None and gw is not None:
         out["grf_err_pct_bw"] = grf_error(p["grf"], g["grf"], pw, gw, m)
     if p.get("tau") is not None and g.get("tau") is not None and pred_mass is not None and gt_mass is not None:
