@@ -41,29 +41,32 @@ def _random_state(model, rng, dtype=np.float64):
     return jnp.asarray(q), jnp.asarray(qd)
 
 
+def _bias_check(model, q, qd, offset):
+    bodies = np.arange(1, model.topo.nbody)
+
+    def points(q):
+        kin = P.forward_kinematics(model, q)
+        return kin, kin.xpos[bodies] + jnp.einsum("bij,bj->bi", kin.xmat[bodies], offset)
+
+    def velocity(s):
+        kin, p = points(P.integrate_positions(model, q, qd, s))
+        J, _ = P.point_jacobian(model, kin, p, bodies)
+        return J @ qd
+
+    h = 1e-5
+    fd = (velocity(h) - velocity(-h)) / (2 * h)
+    kin, p = points(q)
+    got = point_bias_acceleration(model, kin, qd, p, bodies)
+    np.testing.assert_allclose(got, fd, rtol=1e-6, atol=1e-6 * float(jnp.max(jnp.abs(fd))))
+
+
 def test_point_bias_acceleration_matches_finite_differences(enable_x64):
     """Jdot qd of body origins and offset points = d/ds [J(q(s)) qd] along q(s) = q (+) s qd."""
     model = load_model()
     rng = np.random.default_rng(0)
     for _ in range(3):
         q, qd = _random_state(model, rng)
-        bodies = np.arange(1, model.topo.nbody)
-        offset = jnp.asarray(rng.normal(scale=0.1, size=(bodies.size, 3)))
-
-        def points(q):
-            kin = P.forward_kinematics(model, q)
-            return kin, kin.xpos[bodies] + jnp.einsum("bij,bj->bi", kin.xmat[bodies], offset)
-
-        def velocity(s):
-            kin, p = points(P.integrate_positions(model, q, qd, s))
-            J, _ = P.point_jacobian(model, kin, p, bodies)
-            return J @ qd
-
-        h = 1e-5
-        fd = (velocity(h) - velocity(-h)) / (2 * h)
-        kin, p = points(q)
-        got = point_bias_acceleration(model, kin, qd, p, bodies)
-        np.testing.assert_allclose(got, fd, rtol=1e-6, atol=1e-6 * float(jnp.max(jnp.abs(fd))))
+        _bias_check(model, q, qd, jnp.asarray(rng.normal(scale=0.1, size=(model.topo.nbody - 1, 3))))
 
 
 def test_contact_state_is_pips_rule():
@@ -144,7 +147,7 @@ def test_tracking_qp_matches_clarabel_on_cycle_states(enable_x64):
 def test_float32_cycle_is_certified_and_finite():
     """The shipped precision: every QP of the demo clips' cycle certified, forces in the pyramid."""
     _, runs = _demo_cycle(("demo_walk", "demo_run"))
-    for model, ref, fo, _ in runs:
+    for _model, _ref, fo, _ in runs:
         assert fo.q.dtype == jnp.float32 and fo.grf.dtype == jnp.float32
         assert bool(jnp.all(jnp.isfinite(fo.q))) and bool(jnp.all(jnp.isfinite(fo.grf)))
         assert float(jnp.mean(~fo.certified)) <= 0.001

@@ -43,7 +43,6 @@ from jmocap.data.clip import Clip
 from jmocap.inputs import ClipInputs
 from jmocap.model import Model, character
 from jmocap.motion import Motion
-from jmocap.results import MOTION_FIELDS
 
 Array = jnp.ndarray
 

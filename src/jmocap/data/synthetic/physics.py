@@ -205,7 +205,7 @@ def _contact_jacobians(mj, d, con: _Contacts, E: np.ndarray, jp: np.ndarray):
     """Generalised forces of the pyramid edges at the contact points, ``A`` (nv, 4k), and the
     points' Jacobians ``Jc`` (3k, nv) (``mj_jac`` on the foot bodies; ``jp``: a (3, nv) buffer)."""
     A_cols, J_rows = [], []
-    for p, b in zip(con.pos, con.body):
+    for p, b in zip(con.pos, con.body, strict=True):
         mujoco.mj_jac(mj, d, jp, None, p, int(b))
         A_cols.append(jp.T @ E.T)
         J_rows.append(jp.copy())
