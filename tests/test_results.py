@@ -38,6 +38,7 @@ def test_every_written_field_reads_back(tmp_path):
     shapes = {"q": (model.nq,), "qd": (model.nv,), "tau": (model.nv,), "grf": (4, 3), "contact_prob": (4,),
               "target_q": (model.nq,), "keypoints3d": (25, 3)}
     res = {k: rng.normal(size=(T, *shapes[k])).astype(np.float32) for k in MOTION_FIELDS}
+    res["certified"] = rng.random(T) > 0.1  # the optional per-frame QP certificates
     identity = {"config": json.dumps({"mu": 0.8}), "params_sha256": "ab" * 32, "model_sha256": "cd" * 32,
                 "version": "9.9"}
     arrays = result_arrays(clip, res, method="physcap", height_m=1.62, mass_kg=model.total_mass,
@@ -47,7 +48,7 @@ def test_every_written_field_reads_back(tmp_path):
     assert data == npz_bytes(arrays)  # deterministic bytes: equal results give equal files
     r = load_result(tmp_path / "r.npz")
     assert set(r) == set(arrays)  # the reader knows every field the writer writes, nothing else
-    for k in MOTION_FIELDS:
+    for k in (*MOTION_FIELDS, "certified"):
         np.testing.assert_array_equal(r[k], res[k])
     np.testing.assert_array_equal(r["keypoints2d"], clip.keypoints)
     assert r["format"] == RESULT_FORMAT and r["name"] == "walk/take1" and r["source"] == "in/walk.npz"
