@@ -140,6 +140,14 @@ def sole_points(model: Model, kin) -> tuple[Array, np.ndarray, Array]:
     return pts, np.repeat(bodies, 2), pts[:, 2]
 
 
+def on_floor(model: Model, q: Array) -> Array:
+    """``q`` moved vertically so that its lowest sole point touches the floor: the initial state
+    (TPNet's first pose floats or sinks by its depth error; starting there would drop the body
+    from that height, or push it out of the floor, before tracking begins)."""
+    _, _, height = sole_points(model, P.forward_kinematics(model, q))
+    return q.at[2].add(-jnp.min(height))
+
+
 @struct.dataclass
 class StepOutput:
     tau: Array  # (nv,)
@@ -204,7 +212,7 @@ def simulate(model: Model, ref: Reference, mask: Array, fps, config: PIPConfig =
     k = config.iterations
     dt = (1.0 / jnp.asarray(fps, dtype)) / k
     if init is None:
-        init = rest_state(ref.q[0], model.nv)
+        init = rest_state(on_floor(model, ref.q[0]), model.nv)
 
     def frame(state, xs):
         r, real = xs
@@ -249,7 +257,7 @@ def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry: CycleStat
                     config.velocity_smoothing_s)
     ref = jax.tree.map(lambda a: a[H:], ref)
     mask = jnp.asarray(inputs.mask)[H:]
-    fresh = CycleState(ref.q[0], jnp.zeros_like(carry.qd), jnp.zeros_like(carry.grf))
+    fresh = CycleState(on_floor(model, ref.q[0]), jnp.zeros_like(carry.qd), jnp.zeros_like(carry.grf))
     init = jax.tree.map(lambda a, b: jnp.where(first, a, b), fresh, carry)
     state, out = simulate(model, ref, mask, inputs.fps, config, init=init)
     return state, _motion(out, ref, mask)
@@ -281,5 +289,6 @@ __all__ = [
     "simulate",
     "step",
     "step_qp",
+    "on_floor",
     "tracked_bodies",
 ]
