@@ -226,3 +226,31 @@ def test_gradients_match_finite_differences(enable_x64):
     h = 1e-6
     fd = np.array([(f(x0.at[i].add(h)) - f(x0.at[i].add(-h))) / (2 * h) for i in range(3)])
     np.testing.assert_allclose(np.asarray(g), fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+
+
+def test_an_uncertified_solve_is_made_safe(enable_x64):
+    """An infeasible QP (two contradictory rows added) is not certified: its forces are still
+    finite, in the friction pyramid, and its torques follow from the equation of motion."""
+    model = load_model()
+    config = pip.PIPConfig()
+    q = jnp.asarray(model.mj.key_qpos[0] if model.mj.nkey else model.qpos0, jnp.float64)
+    bodies = pip.tracked_bodies(model)
+    pos = P.forward_kinematics(model, q).xpos[bodies]
+    ref = pip.Reference(q, jnp.zeros(model.nv), pos, jnp.zeros((bodies.size, 3)), jnp.zeros(3), jnp.ones(4))
+    state = pip.CycleState(q, jnp.zeros(model.nv), jnp.zeros((4, 3)))
+    qp, _ = pip.step_qp(model, state, ref, 1.0 / 60, config, jnp.ones(8, bool))
+    n = qp.G.shape[1]
+    row = jnp.zeros(n).at[model.nv].set(1.0)
+    bad = qp.replace(G=jnp.concatenate([qp.G, row[None], -row[None]]),
+                     lower=jnp.concatenate([qp.lower, jnp.array([1.0, 0.0])]))
+    sol = solve_qp(bad)
+    assert not bool(sol.certified)
+    f = np.asarray(sol.grf)
+    assert np.all(np.isfinite(f)) and np.all(np.isfinite(np.asarray(sol.tau)))
+    assert np.all(np.abs(f[:, 0]) + np.abs(f[:, 1]) <= config.mu * f[:, 2] + 1e-9)
+    # the torques are the equation of motion's with these forces
+    body = S.rigid_body_terms(model, q, jnp.zeros(model.nv))
+    pts, b, _ = pip.sole_points(model, body.kin)
+    J, _ = P.point_jacobian(model, body.kin, pts, b)
+    want = body.M @ sol.qdd + body.h - jnp.einsum("pdv,pd->v", J, sol.grf)
+    np.testing.assert_allclose(np.asarray(sol.tau), np.asarray(want), atol=1e-6 * float(jnp.abs(want).max()))

@@ -12,6 +12,7 @@ from jmocap.physics.contact import (
 from jmocap.physics.dynamics import (
     SmoothDynamics,
     bias_forces,
+    bias_velocities,
     cho_solve,
     cholesky,
     finite_difference_velocity,
@@ -48,6 +49,7 @@ __all__ = [
     "Kinematics",
     "SmoothDynamics",
     "bias_forces",
+    "bias_velocities",
     "cho_solve",
     "cholesky",
     "finite_difference_velocity",

@@ -109,20 +109,26 @@ def mass_matrix(model: Model, q: Array, *, kin: Kinematics | None = None) -> Arr
 # ---- bias forces ---------------------------------------------------------------------------
 
 
+def bias_velocities(model: Model, kin: Kinematics, qd: Array) -> tuple[Array, Array]:
+    """Body spatial velocities and bias accelerations (the accelerations when ``qdd = 0``),
+    each (nbody, 6) ``[angular; linear]`` about ``kin.origin`` in world orientation, without
+    gravity."""
+    dtype = kin.cdof.dtype
+    qd = jnp.asarray(qd, dtype)
+    moves = jnp.asarray(model.topo.dof_moves_body, dtype)  # (nbody, nv)
+    before = jnp.asarray(model.topo.velocity_before, dtype)  # (nv, nv)
+    scaled = kin.cdof * qd[:, None]  # (nv, 6)
+    cdof_dot = cross_motion(before @ scaled, kin.cdof)  # the frame carrying each dof's axis moves
+    return moves @ scaled, moves @ (cdof_dot * qd[:, None])
+
+
 def bias_forces(model: Model, q: Array, qd: Array, *, kin: Kinematics | None = None) -> Array:
     """h(q, qd): gravity + Coriolis + centrifugal generalised forces (``qfrc_bias``), (nv,)."""
     kin = forward_kinematics(model, q) if kin is None else kin
-    topo = model.topo
     dtype = kin.cdof.dtype
-    qd = jnp.asarray(qd, dtype)
     cdof = kin.cdof
-    moves = jnp.asarray(topo.dof_moves_body, dtype)  # (nbody, nv)
-    before = jnp.asarray(topo.velocity_before, dtype)  # (nv, nv)
-    scaled = cdof * qd[:, None]  # (nv, 6)
-    v_before = before @ scaled  # velocity of the frame carrying each dof's axis
-    cdof_dot = cross_motion(v_before, cdof)
-    vel = moves @ scaled  # (nbody, 6) body spatial velocities
-    acc = moves @ (cdof_dot * qd[:, None])  # bias accelerations (qdd = 0)
+    moves = jnp.asarray(model.topo.dof_moves_body, dtype)  # (nbody, nv)
+    vel, acc = bias_velocities(model, kin, qd)
     grav = jnp.concatenate([jnp.zeros(3, dtype), -_c(model.gravity, dtype)])
     acc = acc + grav  # MuJoCo's trick: accelerate the base against gravity
     inert = body_inertias(model, kin)

@@ -57,7 +57,7 @@ from flax import struct
 
 from jmocap.constants import FLOOR_NORMAL, FRICTION_MU
 from jmocap.model import Model
-from jmocap.physics.dynamics import cross_motion
+from jmocap.physics.dynamics import bias_velocities
 from jmocap.physics.kinematics import Kinematics, point_jacobian
 from jmocap.physics.linalg import cho_solve, cholesky
 from jmocap.physics.qp import friction_pyramid_edges, solve_projection_info, tangent_basis
@@ -108,19 +108,6 @@ class TrackingSolution:
     tau: Array  # (nv,) generalised force: residual root wrench [:6] (N, N m), joint torques (N m)
     certified: Array  # () bool: the KKT conditions hold to rounding
     kkt_violation: Array  # () the largest relative KKT violation
-
-
-def bias_velocities(model: Model, kin: Kinematics, qd: Array) -> tuple[Array, Array]:
-    """Body spatial velocities and bias accelerations (the accelerations when ``qdd = 0``),
-    each (nbody, 6) ``[angular; linear]`` about ``kin.origin`` in world orientation, without
-    gravity."""
-    topo = model.topo
-    dtype = kin.cdof.dtype
-    moves = jnp.asarray(topo.dof_moves_body, dtype)
-    before = jnp.asarray(topo.velocity_before, dtype)
-    scaled = kin.cdof * jnp.asarray(qd, dtype)[:, None]
-    cdof_dot = cross_motion(before @ scaled, kin.cdof)
-    return moves @ scaled, moves @ (cdof_dot * jnp.asarray(qd, dtype)[:, None])
 
 
 def point_bias_acceleration(model: Model, kin: Kinematics, qd: Array, points: Array, bodies) -> Array:
@@ -249,9 +236,17 @@ def solve_tracking(*args, **kwargs) -> TrackingSolution:
 
 
 def solve_qp(qp: TrackingQP) -> TrackingSolution:
-    """Solve an assembled tracking QP exactly (dual active set on H's Cholesky factor)."""
+    """Solve an assembled tracking QP exactly (dual active set on H's Cholesky factor).
+
+    A solve whose KKT check fails (``certified`` False; never seen on the demo clips or in the
+    tests, see docs/method.md) is made safe rather than trusted: its edge coefficients are
+    clipped to ``c >= 0``, so the forces lie in the friction pyramid and vanish off contact, and
+    the torques are recomputed from the equation of motion with them (the residual absorbs the
+    difference). It stays counted as uncertified."""
     info = solve_projection_info(None, qp.G, qp.v, qp.lower, chol=qp.L)
-    return solution(qp, info.x, info.converged, info.kkt_violation)
+    nv = qp.A_eom.shape[0]
+    x = jnp.where(info.converged, info.x, info.x.at[nv:].set(jnp.maximum(info.x[nv:], 0.0)))
+    return solution(qp, x, info.converged, info.kkt_violation)
 
 
 def solution(qp: TrackingQP, x: Array, certified=True, kkt_violation=0.0) -> TrackingSolution:
@@ -269,7 +264,6 @@ __all__ = [
     "TrackingQP",
     "TrackingSolution",
     "TrackingWeights",
-    "bias_velocities",
     "contact_state",
     "point_bias_acceleration",
     "solution",
