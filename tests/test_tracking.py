@@ -254,3 +254,20 @@ def test_an_uncertified_solve_is_made_safe(enable_x64):
     J, _ = P.point_jacobian(model, body.kin, pts, b)
     want = body.M @ sol.qdd + body.h - jnp.einsum("pdv,pd->v", J, sol.grf)
     np.testing.assert_allclose(np.asarray(sol.tau), np.asarray(want), atol=1e-6 * float(jnp.abs(want).max()))
+
+
+@pytest.mark.slow  # ~1 min warm: it compiles three chunk shapes; `make test-slow`
+def test_chunked_equals_whole_clip():
+    """The pipeline's chunks (state and velocity filter carried) agree with ``reconstruct`` on the
+    whole clip to float32 rounding, relative to each field's magnitude."""
+    from jmocap.pipeline import Reconstructor
+
+    params, config = load_run_params(None, method="pip")
+    clip = load_clip(DEMO / "demo_walk.npz").slice(0, 30)
+    chunked = Reconstructor(params, config, method="pip", chunk=12, bucket=4, batch=1).run([clip])[0]
+    model = subject_model(clip)
+    whole = jax.jit(pip.reconstruct)(params, model, ClipInputs.from_clip(clip), config)
+    for k in ("q", "qd", "tau", "grf", "target_q"):
+        w = np.asarray(getattr(whole, k))
+        np.testing.assert_allclose(chunked[k], w, rtol=0, atol=2e-3 * (float(np.abs(w).max()) + 1e-3), err_msg=k)
+    np.testing.assert_array_equal(chunked["certified"], np.asarray(whole.certified))

@@ -39,7 +39,8 @@ from jmocap.methods import stages as S
 from jmocap.methods.base import Method, register, static
 from jmocap.methods.kinematic import KinematicConfig
 from jmocap.methods.kinematic import init_params as init_tpnet_params
-from jmocap.methods.physcap import CycleState, init_carry, rest_state
+from jmocap.methods.physcap import CycleState, rest_state
+from jmocap.methods.physcap import init_carry as physcap_init_carry
 from jmocap.model import Model
 from jmocap.motion import Motion
 from jmocap.physics.contact import sole_half_width
@@ -106,10 +107,13 @@ class Reference:
     prob: Array  # (4,) contact probabilities
 
 
-def reference(model: Model, q_hat: Array, prob: Array, fps, smoothing_s=0.2, init_vel=None) -> Reference:
-    """The per-frame reference from the target poses (T, nq) (backward differences and a
+def reference(model: Model, q_hat: Array, prob: Array, fps, smoothing_s=0.2, *, skip: int = 0,
+              init_vel=None) -> Reference:
+    """The per-frame reference from the target poses (T, nq): backward differences and a
     first-order low-pass filter of the root velocity with time constant ``smoothing_s``, both
-    causal; ``init_vel`` is the filter's state before the first frame, default its first value)."""
+    causal. The filter runs over frames ``skip:`` only (a chunk's history frames are skipped,
+    their entries are zero), starting from ``init_vel`` (the filter's state before frame
+    ``skip``; default: that frame's own velocity)."""
     bodies = tracked_bodies(model)
     pos = jax.vmap(lambda q: P.forward_kinematics(model, q).xpos[bodies])(q_hat)
     fps = jnp.asarray(fps, q_hat.dtype)
@@ -120,7 +124,9 @@ def reference(model: Model, q_hat: Array, prob: Array, fps, smoothing_s=0.2, ini
         v = v + a * (x - v)
         return v, v
 
-    _, root_vel = jax.lax.scan(lowpass, vel[0, 0] if init_vel is None else init_vel, vel[:, 0])
+    root = vel[skip:, 0]
+    _, root_vel = jax.lax.scan(lowpass, root[0] if init_vel is None else init_vel, root)
+    root_vel = jnp.concatenate([jnp.zeros((skip, 3), root_vel.dtype), root_vel])
     return Reference(q_hat, P.finite_difference_velocity(model, q_hat, fps), pos, vel, root_vel, prob)
 
 
@@ -248,19 +254,36 @@ def history(config) -> int:
     return 2 * config.nets.window - 1
 
 
-def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry: CycleState, first, config: PIPConfig,
-                      history: int) -> tuple[CycleState, Motion]:
-    """One chunk of one clip (see :func:`jmocap.methods.physcap.reconstruct_chunk`)."""
+@struct.dataclass
+class Carry:
+    """What a chunk hands to the next: the dynamic state and the root-velocity filter's state."""
+
+    state: CycleState
+    root_vel: Array  # (3,)
+
+
+def init_carry(model: Model, config=None, dtype=jnp.float32) -> Carry:
+    """A zero :class:`Carry` (the shapes of the state carried between chunks)."""
+    return Carry(physcap_init_carry(model, config, dtype), jnp.zeros(3, dtype))
+
+
+def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry: Carry, first, config: PIPConfig,
+                      history: int) -> tuple[Carry, Motion]:
+    """One chunk of one clip (see :func:`jmocap.methods.physcap.reconstruct_chunk`); the carried
+    state and filter make the chunks agree with :func:`reconstruct` to float rounding."""
     H = history
     tp = S.target_pose(params, model, inputs, config)
-    ref = reference(model, tp.q_hat, S.contact_probability(tp.contact_logits), inputs.fps,
-                    config.velocity_smoothing_s)
-    ref = jax.tree.map(lambda a: a[H:], ref)
+    prob = S.contact_probability(tp.contact_logits)
+    fresh = reference(model, tp.q_hat, prob, inputs.fps, config.velocity_smoothing_s, skip=H)
+    carried = reference(model, tp.q_hat, prob, inputs.fps, config.velocity_smoothing_s, skip=H,
+                        init_vel=carry.root_vel)
+    ref = jax.tree.map(lambda a, b: jnp.where(first, a, b)[H:], fresh, carried)
     mask = jnp.asarray(inputs.mask)[H:]
-    fresh = CycleState(on_floor(model, ref.q[0]), jnp.zeros_like(carry.qd), jnp.zeros_like(carry.grf))
-    init = jax.tree.map(lambda a, b: jnp.where(first, a, b), fresh, carry)
+    start = CycleState(on_floor(model, ref.q[0]), jnp.zeros_like(carry.state.qd), jnp.zeros_like(carry.state.grf))
+    init = jax.tree.map(lambda a, b: jnp.where(first, a, b), start, carry.state)
     state, out = simulate(model, ref, mask, inputs.fps, config, init=init)
-    return state, _motion(out, ref, mask)
+    last = jnp.max(jnp.where(mask, jnp.arange(mask.shape[0]), 0))  # the chunk's last real frame
+    return Carry(state, ref.root_vel[last]), _motion(out, ref, mask)
 
 
 METHOD = register(
@@ -280,6 +303,8 @@ METHOD = register(
 
 __all__ = [
     "METHOD",
+    "Carry",
+    "init_carry",
     "PIPConfig",
     "Reference",
     "init_params",
