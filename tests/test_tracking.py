@@ -168,6 +168,13 @@ def test_walking_left_and_right_forces_are_not_the_same_curve():
     assert np.max(np.abs(left - right)) > 0.2 * np.max(left + right)
 
 
+def _standing(model, shift=0.0):
+    """The standing pose moved up by ``shift`` (float64), the tracked bodies and their origins."""
+    q = jnp.asarray(model.mj.key_qpos[0] if model.mj.nkey else model.qpos0, jnp.float64).at[2].add(shift)
+    bodies = pip.tracked_bodies(model)
+    return q, bodies, P.forward_kinematics(model, q).xpos[bodies]
+
+
 @pytest.mark.parametrize("shift", [0.02, 0.0, -0.02])
 @pytest.mark.parametrize("contact", [True, False])
 def test_non_penetration_is_unconditional(enable_x64, shift, contact):
@@ -175,15 +182,10 @@ def test_non_penetration_is_unconditional(enable_x64, shift, contact):
     above the floor; a point above may move down to it; the solution is Clarabel's."""
     model = load_model()
     config = pip.PIPConfig()
-    q = jnp.asarray(model.mj.key_qpos[0] if model.mj.nkey else model.qpos0, jnp.float64)
-    q = q.at[2].add(shift)
+    q, bodies, pos = _standing(model, shift)
     qd = jnp.zeros(model.nv).at[2].set(-3.0)  # moving down fast: free, it would pass the floor
-    bodies = pip.tracked_bodies(model)
-    pos = P.forward_kinematics(model, q).xpos[bodies]
-    T = 1
-    ref = pip.Reference(q[None], jnp.zeros((T, model.nv)), pos[None] - jnp.array([0, 0, 0.3]),
-                        jnp.zeros((T, bodies.size, 3)), jnp.array([[0.0, 0.0, -2.0]]), jnp.ones((T, 4)))
-    ref = jax.tree.map(lambda a: a[0], ref)
+    ref = pip.Reference(q, jnp.zeros(model.nv), pos - jnp.array([0, 0, 0.3]), jnp.zeros((bodies.size, 3)),
+                        jnp.array([0.0, 0.0, -2.0]), jnp.ones(4))
     dt = 1.0 / 60
     state = pip.CycleState(q, qd, jnp.zeros((4, 3)))
     qp, _ = pip.step_qp(model, state, ref, dt, config, jnp.full(8, contact))
@@ -207,10 +209,8 @@ def test_gradients_match_finite_differences(enable_x64):
     """d(qdd, grf)/d(target) through the exact QP (active constraints included)."""
     model = load_model()
     config = pip.PIPConfig()
-    q = jnp.asarray(model.mj.key_qpos[0] if model.mj.nkey else model.qpos0, jnp.float64).at[2].add(0.002)
+    q, bodies, pos = _standing(model, 0.002)
     qd = jnp.zeros(model.nv).at[0].set(0.3)
-    bodies = pip.tracked_bodies(model)
-    pos = P.forward_kinematics(model, q).xpos[bodies]
     dt = 1.0 / 60
     state = pip.CycleState(q, qd, jnp.zeros((4, 3)))
     w = jnp.asarray(np.random.default_rng(1).normal(size=model.nv + 24))
@@ -233,9 +233,7 @@ def test_an_uncertified_solve_is_made_safe(enable_x64):
     finite, in the friction pyramid, and its torques follow from the equation of motion."""
     model = load_model()
     config = pip.PIPConfig()
-    q = jnp.asarray(model.mj.key_qpos[0] if model.mj.nkey else model.qpos0, jnp.float64)
-    bodies = pip.tracked_bodies(model)
-    pos = P.forward_kinematics(model, q).xpos[bodies]
+    q, bodies, pos = _standing(model)
     ref = pip.Reference(q, jnp.zeros(model.nv), pos, jnp.zeros((bodies.size, 3)), jnp.zeros(3), jnp.ones(4))
     state = pip.CycleState(q, jnp.zeros(model.nv), jnp.zeros((4, 3)))
     qp, _ = pip.step_qp(model, state, ref, 1.0 / 60, config, jnp.ones(8, bool))

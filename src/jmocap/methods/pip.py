@@ -108,12 +108,12 @@ class Reference:
 
 
 def reference(model: Model, q_hat: Array, prob: Array, fps, smoothing_s=0.2, *, skip: int = 0,
-              init_vel=None) -> Reference:
+              init_vel=None, restart=True) -> Reference:
     """The per-frame reference from the target poses (T, nq): backward differences and a
     first-order low-pass filter of the root velocity with time constant ``smoothing_s``, both
     causal. The filter runs over frames ``skip:`` only (a chunk's history frames are skipped,
-    their entries are zero), starting from ``init_vel`` (the filter's state before frame
-    ``skip``; default: that frame's own velocity)."""
+    their entries are zero), starting from that frame's own velocity where ``restart`` (a
+    clip's first chunk) and from ``init_vel`` (the filter's carried state) elsewhere."""
     bodies = tracked_bodies(model)
     pos = jax.vmap(lambda q: P.forward_kinematics(model, q).xpos[bodies])(q_hat)
     fps = jnp.asarray(fps, q_hat.dtype)
@@ -125,7 +125,8 @@ def reference(model: Model, q_hat: Array, prob: Array, fps, smoothing_s=0.2, *, 
         return v, v
 
     root = vel[skip:, 0]
-    _, root_vel = jax.lax.scan(lowpass, root[0] if init_vel is None else init_vel, root)
+    start = root[0] if init_vel is None else jnp.where(restart, root[0], init_vel)
+    _, root_vel = jax.lax.scan(lowpass, start, root)
     root_vel = jnp.concatenate([jnp.zeros((skip, 3), root_vel.dtype), root_vel])
     return Reference(q_hat, P.finite_difference_velocity(model, q_hat, fps), pos, vel, root_vel, prob)
 
@@ -274,10 +275,9 @@ def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry: Carry, fi
     H = history
     tp = S.target_pose(params, model, inputs, config)
     prob = S.contact_probability(tp.contact_logits)
-    fresh = reference(model, tp.q_hat, prob, inputs.fps, config.velocity_smoothing_s, skip=H)
-    carried = reference(model, tp.q_hat, prob, inputs.fps, config.velocity_smoothing_s, skip=H,
-                        init_vel=carry.root_vel)
-    ref = jax.tree.map(lambda a, b: jnp.where(first, a, b)[H:], fresh, carried)
+    ref = reference(model, tp.q_hat, prob, inputs.fps, config.velocity_smoothing_s, skip=H,
+                    init_vel=carry.root_vel, restart=first)
+    ref = jax.tree.map(lambda a: a[H:], ref)
     mask = jnp.asarray(inputs.mask)[H:]
     start = CycleState(on_floor(model, ref.q[0]), jnp.zeros_like(carry.state.qd), jnp.zeros_like(carry.state.grf))
     init = jax.tree.map(lambda a, b: jnp.where(first, a, b), start, carry.state)

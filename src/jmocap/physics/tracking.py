@@ -209,12 +209,8 @@ def tracking_qp(
     g = sum(k * (A.T @ b) for k, A, b in rows)  # the objective is 1/2 x^T H x - g^T x
     # Signorini and regularisation on the coefficients: ||lambda_p||^2 = c_p^T (E E^T) c_p
     EEt = E @ E.T
-    sig = w.signorini * jnp.maximum(height, 0.0)
-    Hc = jnp.einsum("p,kl->pkl", sig, EEt)
-    Hc_full = jnp.zeros((nc, nc), dtype)
-    for p in range(P):
-        Hc_full = Hc_full.at[p * K : (p + 1) * K, p * K : (p + 1) * K].set(Hc[p])
-    H = H.at[nv:, nv:].add(Hc_full + w.regularisation * jnp.eye(nc, dtype=dtype))
+    sig = w.signorini * jnp.maximum(height, 0.0)  # one (K, K) block per point
+    H = H.at[nv:, nv:].add(jnp.kron(jnp.diag(sig), EEt) + w.regularisation * jnp.eye(nc, dtype=dtype))
     H = 0.5 * (H + H.T)
     L = cholesky(H)
     v = cho_solve(L, g)  # the unconstrained minimiser
