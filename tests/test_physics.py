@@ -126,6 +126,26 @@ def test_against_mujoco_c_float64(model64):
 inv_dyn = jax.jit(P.inverse_dynamics)
 
 
+def test_rnea_against_mujoco_c(model64):
+    """``rnea`` (no mass matrix) equals MuJoCo C's ``mj_rne`` with accelerations (plus the
+    armature term, which mj_rne leaves to the constraint stage) and ``M qdd + h``."""
+    with x64():
+        mj = _copy_without_constraints(model64.mj)
+        qs, qds = random_configurations(mj, 5, seed=4)
+        qdds = np.random.default_rng(5).normal(scale=5.0, size=qds.shape)
+        d = mujoco.MjData(mj)
+        for q, qd, qdd in zip(qs, qds, qdds, strict=True):
+            d.qpos[:], d.qvel[:] = q, qd
+            mujoco.mj_forward(mj, d)
+            d.qacc[:] = qdd
+            ref = np.zeros(mj.nv)
+            mujoco.mj_rne(mj, d, 1, ref)
+            ref += mj.dof_armature * qdd
+            out = np.asarray(P.rnea(model64, q, qd, qdd))
+            assert rel_err(out, ref) < RTOL64
+            assert rel_err(out, np.asarray(P.inverse_dynamics(model64, q, qd, qdd))) < RTOL64
+
+
 def test_contact_forces_enter_as_jacobian_transpose():
     """J_c^T f against MuJoCo's mj_applyFT (a world force at a point of a body)."""
     with x64():

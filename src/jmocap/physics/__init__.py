@@ -22,6 +22,7 @@ from jmocap.physics.dynamics import (
     inverse_dynamics,
     mass_inverse,
     mass_matrix,
+    rnea,
     smooth_dynamics,
 )
 from jmocap.physics.kinematics import (
@@ -63,6 +64,7 @@ __all__ = [
     "mass_inverse",
     "mass_matrix",
     "point_jacobian",
+    "rnea",
     "site_jacobian",
     "site_positions",
     "smooth_dynamics",

@@ -122,19 +122,30 @@ def bias_velocities(model: Model, kin: Kinematics, qd: Array) -> tuple[Array, Ar
     return moves @ scaled, moves @ (cdof_dot * qd[:, None])
 
 
-def bias_forces(model: Model, q: Array, qd: Array, *, kin: Kinematics | None = None) -> Array:
-    """h(q, qd): gravity + Coriolis + centrifugal generalised forces (``qfrc_bias``), (nv,)."""
+def rnea(model: Model, q: Array, qd: Array, qdd: Array, *, kin: Kinematics | None = None) -> Array:
+    """Inverse dynamics without the mass matrix: ``M(q) qdd + h(q, qd)``, (nv,), by the
+    recursive Newton-Euler algorithm (MuJoCo's ``mj_rne`` with accelerations, plus the joint
+    armature). O(nbody nv); cheaper than forming ``M`` when only the generalised force is needed
+    (whole-clip trajectory optimisation evaluates it at every frame of every iteration)."""
     kin = forward_kinematics(model, q) if kin is None else kin
     dtype = kin.cdof.dtype
     cdof = kin.cdof
+    qdd = jnp.asarray(qdd, dtype)
     moves = jnp.asarray(model.topo.dof_moves_body, dtype)  # (nbody, nv)
     vel, acc = bias_velocities(model, kin, qd)
     grav = jnp.concatenate([jnp.zeros(3, dtype), -_c(model.gravity, dtype)])
-    acc = acc + grav  # MuJoCo's trick: accelerate the base against gravity
+    acc = acc + moves @ (cdof * qdd[:, None]) + grav  # MuJoCo's trick: accelerate the base against gravity
     inert = body_inertias(model, kin)
     f = inert.apply(acc) + cross_force(vel, inert.apply(vel))  # (nbody, 6)
     f_sub = moves.T @ f  # (nv, 6): net force on the subtree moved by each dof
-    return jnp.sum(cdof * f_sub, -1)
+    return jnp.sum(cdof * f_sub, -1) + _c(model.dof_armature, dtype) * qdd
+
+
+def bias_forces(model: Model, q: Array, qd: Array, *, kin: Kinematics | None = None) -> Array:
+    """h(q, qd): gravity + Coriolis + centrifugal generalised forces (``qfrc_bias``), (nv,):
+    :func:`rnea` at zero acceleration."""
+    kin = forward_kinematics(model, q) if kin is None else kin
+    return rnea(model, q, qd, jnp.zeros(model.nv, kin.cdof.dtype), kin=kin)
 
 
 # ---- everything the dynamic cycle needs, from one kinematics pass -------------------------
