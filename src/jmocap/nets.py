@@ -12,6 +12,9 @@
   root-relative 3D joints P_rr of C_P's pose and the canonical keypoints K_c.
 * :class:`DyNet` — gains and offsets of the neural PD controller (eq. 7).
 * :class:`GRFNet` — ground reaction forces at the contact points.
+* :class:`ContactMLP` — Rempe et al. (2020)'s foot-contact classifier (Sec. 3.2, Appendix A.2):
+  an MLP on a window of lower-body 2D keypoints, with batch norm (running statistics in the
+  ``batch_stats`` collection, the one network here that has them).
 
 Widths are configurable (:class:`NetConfig`); the defaults are narrower than the paper's 1024 so
 that training fits a 2-core CPU (docs/method.md). Everything is a pure function of
@@ -132,6 +135,37 @@ class GRFNet(nn.Module):
             h = nn.leaky_relu(nn.Dense(self.width)(h), 0.1)
         out = nn.Dense(3 * self.n_points, kernel_init=nn.initializers.zeros)(h)
         return out.reshape(*x.shape[:-1], self.n_points, 3)
+
+
+class ContactMLP(nn.Module):
+    """Rempe et al. (2020) Appendix A.2: an MLP from a window of lower-body keypoints to the
+    contact logits of 5 frames x 4 contact points (``(..., 20)``, frame-major).
+
+    Every hidden layer is Dense -> BatchNorm -> ReLU (batch norm follows all but the last layer),
+    with one dropout (``dropout`` = 0.3) before the third hidden layer. The paper's widths are
+    (1024, 512, 128, 32); jmocap's default (512, 256, 128, 32) halves the first two so that the
+    weights are 0.35 M parameters (0.7 MB shipped as float16, 1.4 MB float32) instead of
+    0.95 M, and so that training on a single CPU core finishes in minutes (docs/method.md).
+    BatchNorm momentum 0.9 is PyTorch's default (0.1 there). With ``train=True`` call it with
+    ``mutable=["batch_stats"]`` and a ``"dropout"`` rng.
+    """
+
+    widths: tuple[int, ...] = (512, 256, 128, 32)
+    out: int = 20
+    dropout: float = 0.3
+    dropout_before: int = 2  # index of the hidden layer the dropout precedes (the third)
+    momentum: float = 0.9
+
+    @nn.compact
+    def __call__(self, x: jnp.ndarray, *, train: bool = False) -> jnp.ndarray:
+        h = x
+        for i, w in enumerate(self.widths):
+            if i == self.dropout_before:
+                h = nn.Dropout(self.dropout, deterministic=not train)(h)
+            h = nn.Dense(w)(h)
+            h = nn.BatchNorm(use_running_average=not train, momentum=self.momentum)(h)
+            h = nn.relu(h)
+        return nn.Dense(self.out)(h)
 
 
 def rot6d_to_mat(x: jnp.ndarray) -> jnp.ndarray:
