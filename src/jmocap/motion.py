@@ -26,6 +26,9 @@ class Motion:
     # (T,) bool, methods that solve an optimisation per frame: every solve of the frame was
     # certified optimal (KKT conditions checked); None for methods without one
     certified: Array | None = None
+    # per-clip scalars (name -> () array; a batch adds a leading axis) that a method reports about
+    # its solve, e.g. an optimiser's convergence report; None for methods without one
+    diagnostics: dict[str, Array] | None = None
 
     @property
     def num_frames(self) -> int:

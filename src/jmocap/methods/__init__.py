@@ -4,6 +4,7 @@
 ``kinematic``             TPNet's target pose alone (:mod:`jmocap.methods.kinematic`)
 ``physcap``               Neural PhysCap's dynamic cycle (:mod:`jmocap.methods.physcap`)
 ``pip``                   PIP's dual PD + tracking QP: physical dynamics (:mod:`jmocap.methods.pip`)
+``trajopt``               offline whole-clip fit + physics trajectory optimisation (:mod:`jmocap.methods.trajopt`)
 variants of ``physcap``   ``physionical`` (every stage on), ``fixed_gains``, ``no_grfnet``,
                           ``no_hard_constraint``, ``no_canonicalisation`` (the paper's ablations)
 ========================  ==================================================================
@@ -12,7 +13,7 @@ variants of ``physcap``   ``physionical`` (every stage on), ``fixed_gains``, ``n
 inputs, config)`` is the pure function of one clip. See :mod:`jmocap.methods.base`.
 """
 
-from jmocap.methods import kinematic, physcap, pip  # noqa: F401  (registers the methods)
+from jmocap.methods import kinematic, physcap, pip, trajopt  # noqa: F401  (registers the methods)
 from jmocap.methods.base import (
     Method,
     Variant,

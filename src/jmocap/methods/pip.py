@@ -41,9 +41,9 @@ from jmocap.methods.kinematic import KinematicConfig
 from jmocap.methods.kinematic import init_params as init_tpnet_params
 from jmocap.methods.physcap import CycleState, rest_state
 from jmocap.methods.physcap import init_carry as physcap_init_carry
+from jmocap.methods.stages import on_floor, sole_points
 from jmocap.model import Model
 from jmocap.motion import Motion
-from jmocap.physics.contact import sole_half_width
 from jmocap.physics.tracking import TrackingWeights, contact_state, solve_qp, tracking_qp
 
 Array = jnp.ndarray
@@ -129,30 +129,6 @@ def reference(model: Model, q_hat: Array, prob: Array, fps, smoothing_s=0.2, *, 
     _, root_vel = jax.lax.scan(lowpass, start, root)
     root_vel = jnp.concatenate([jnp.zeros((skip, 3), root_vel.dtype), root_vel])
     return Reference(q_hat, P.finite_difference_velocity(model, q_hat, fps), pos, vel, root_vel, prob)
-
-
-def sole_points(model: Model, kin) -> tuple[Array, np.ndarray, Array]:
-    """The contact points of the tracking QP: each foot contact site (heel, toe) widened to a pair
-    of points at +- the sole's half-width along its body's lateral axis, so that a foot can
-    carry a moment about its long axis (PIP uses the four corners of a square per foot joint).
-    Returns positions (8, 3), static body ids (8,) and heights above the floor (8,), ordered
-    site by site (the pair of site i at 2i, 2i + 1)."""
-    sites = np.asarray(model.topo.contact_sites)
-    bodies = np.asarray(model.topo.site_body)[sites]
-    centre = P.site_positions(model, None, sites, kin=kin)
-    lateral = kin.xmat[bodies][:, :, 1]  # the bodies' y axes in the world
-    half = sole_half_width(model)
-    pts = (centre[:, None, :] + jnp.asarray([-half, half], centre.dtype)[None, :, None] * lateral[:, None, :])
-    pts = pts.reshape(-1, 3)
-    return pts, np.repeat(bodies, 2), pts[:, 2]
-
-
-def on_floor(model: Model, q: Array) -> Array:
-    """``q`` moved vertically so that its lowest sole point touches the floor: the initial state
-    (TPNet's first pose floats or sinks by its depth error; starting there would drop the body
-    from that height, or push it out of the floor, before tracking begins)."""
-    _, _, height = sole_points(model, P.forward_kinematics(model, q))
-    return q.at[2].add(-jnp.min(height))
 
 
 @struct.dataclass

@@ -40,7 +40,7 @@ from jmocap.inputs import ClipInputs
 from jmocap.layouts import get_layout
 from jmocap.model import Model
 from jmocap.nets import DyNet, GRFNet, NetConfig, TPNet, rot6d_to_mat
-from jmocap.physics.contact import project_friction_pyramid
+from jmocap.physics.contact import project_friction_pyramid, sole_half_width
 from jmocap.physics.linalg import solve_spd3
 from jmocap.physics.rotations import mat_to_quat, quat_error
 
@@ -373,7 +373,40 @@ def hard_constraint(model: Model, q, qd_free, in_contact, dt, *, metric: str, be
     )
 
 
+
+
+# ---------------------------------------------------------------------------------------
+# contact points of the sole (the physical methods' contact model)
+# ---------------------------------------------------------------------------------------
+
+
+def sole_points(model: Model, kin) -> tuple[Array, np.ndarray, Array]:
+    """The contact points of the tracking QP: each foot contact site (heel, toe) widened to a pair
+    of points at +- the sole's half-width along its body's lateral axis, so that a foot can
+    carry a moment about its long axis (PIP uses the four corners of a square per foot joint).
+    Returns positions (8, 3), static body ids (8,) and heights above the floor (8,), ordered
+    site by site (the pair of site i at 2i, 2i + 1)."""
+    sites = np.asarray(model.topo.contact_sites)
+    bodies = np.asarray(model.topo.site_body)[sites]
+    centre = P.site_positions(model, None, sites, kin=kin)
+    lateral = kin.xmat[bodies][:, :, 1]  # the bodies' y axes in the world
+    half = sole_half_width(model)
+    pts = (centre[:, None, :] + jnp.asarray([-half, half], centre.dtype)[None, :, None] * lateral[:, None, :])
+    pts = pts.reshape(-1, 3)
+    return pts, np.repeat(bodies, 2), pts[:, 2]
+
+
+def on_floor(model: Model, q: Array) -> Array:
+    """``q`` moved vertically so that its lowest sole point touches the floor: the initial state
+    (TPNet's first pose floats or sinks by its depth error; starting there would drop the body
+    from that height, or push it out of the floor, before tracking begins)."""
+    _, _, height = sole_points(model, P.forward_kinematics(model, q))
+    return q.at[2].add(-jnp.min(height))
+
+
 __all__ = [
+    "on_floor",
+    "sole_points",
     "PDGains",
     "RigidBodyTerms",
     "TargetPose",

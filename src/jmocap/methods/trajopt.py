@@ -1,0 +1,642 @@
+r"""``trajopt``: fit the whole clip to its 2D evidence, then make it obey the equations of motion
+(Rempe et al. 2020, "Contact and Human Dynamics from Monocular Video", Sec. 3.1-3.3), offline.
+
+Every frame of the causal methods is decided once, by networks that never look back at the
+keypoints. ``trajopt`` instead optimises the trajectory of the whole clip (or of overlapping
+windows of it, stitched) against the 2D keypoints through the clip's camera, on jmocap's
+character (its bone lengths, joint limits and mass distribution), in two stages:
+
+1. **Kinematic fit** (Rempe et al. Sec. 3.3 / App. B, on jmocap's character): the root
+   position, root orientation and hinge angles of every frame minimise
+
+   * a confidence-weighted robust reprojection error (Geman-McClure, in percent of the person's
+     height in the image, so one set of weights serves every resolution and distance);
+   * a prior towards TPNet's root-relative 3D joints (their ``E_data``: it holds the depth that
+     one view cannot see) and joint-limit penalties from the model;
+   * smoothness: 3D joint accelerations (their ``E_acc``);
+   * contacts (their ``E_cont``, ``E_floor``): a foot point labelled in contact stays still and
+     its sole lies on the floor; no sole point is below the floor, labelled or not.
+
+   Labels come from the contact estimator (``contact_source``): Rempe et al.'s MLP over 2D
+   keypoint windows with voting (:mod:`jmocap.methods.contact_estimation`), or TPNet's contact
+   head. As in their App. B.4, labels whose point is far from the floor after a first fit are
+   outliers and are dropped before the second fit.
+
+2. **Physics** (Rempe et al. Sec. 3.1 with jmocap's full-body dynamics instead of their
+   centroidal model): the trajectory is optimised again, now also penalising the residual root
+   wrench of the equations of motion ``M(q) qdd + h(q, qd) = S tau + J_c(q)^T lambda``, with
+   ``qd``, ``qdd`` the finite differences of the trajectory (the semi-implicit Euler step of the
+   causal methods: ``q_{t+1} = q_t (+) dt qd_{t+1}``). The contact forces are optimised with it,
+   by *variable projection*: at every frame, for the current trajectory, the forces are the
+   best non-negative combination of the friction-pyramid edges (jmocap's one friction model,
+   MuJoCo's pyramidal cone, ``mu = FRICTION_MU``) at the sole points in contact that produce the
+   root wrench the motion needs (a 32-variable NNLS, solved by FISTA); zero force elsewhere.
+   What the forces cannot produce is the residual, penalised in units of body weight; by
+   Danskin's theorem its gradient with respect to the trajectory is that of the residual at
+   the optimal forces, so the forces enter the outer problem exactly without being its
+   variables (the outer problem stays well conditioned; the constraint ``lambda in cone`` holds
+   exactly at every iterate). The kinematic terms stay, plus a pull towards the kinematic fit.
+
+The joint torques are then ``tau = M qdd + h - J_c^T lambda`` (:func:`jmocap.physics.rnea`): the
+residual root wrench ``tau[:6]`` is what the optimisation could not remove.
+
+Both stages run L-BFGS (optax, zoom line search) for a fixed number of iterations, so the
+program is ``jax.jit``-ed once per length bucket and ``jax.vmap``-ed over clips; each clip's
+convergence report (objective before and after, the terms, gradient norm, residual, penetration
+and slip) is part of its result (:attr:`jmocap.motion.Motion.diagnostics`). The result is a
+deterministic function of the input. See docs/method.md ("trajopt") for every weight.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+
+from jmocap import physics as P
+from jmocap.camera import Camera, project
+from jmocap.constants import FRICTION_MU, GRAVITY
+from jmocap.inputs import ClipInputs
+from jmocap.layouts import get_layout
+from jmocap.methods import stages as S
+from jmocap.methods.base import Method, register, static
+from jmocap.methods.kinematic import KinematicConfig
+from jmocap.methods.kinematic import init_params as init_tpnet_params
+from jmocap.model import Model
+from jmocap.motion import Motion
+from jmocap.physics.qp import friction_pyramid_edges
+from jmocap.physics.rotations import quat_error, quat_exp, quat_mul, quat_normalize
+
+Array = jnp.ndarray
+
+
+@struct.dataclass
+class TrajOptConfig(KinematicConfig):
+    """Structure (static) and weights (traced) of ``trajopt``. Every energy is a mean over the
+    clip's real frames of squared residuals, each residual divided by its ``*_sigma`` (the size
+    of error that costs as much as one unit of the reprojection term)."""
+
+    kinematic_iterations: int = static(60)  # L-BFGS iterations of each kinematic fit (two fits)
+    physics_iterations: int = static(80)  # L-BFGS iterations of the physics stage
+    memory: int = static(10)  # L-BFGS history
+    window: int = static(0)  # frames per window (0: the whole clip is one window)
+    overlap: int = static(32)  # frames shared by consecutive windows (cross-faded)
+    contact_source: str = static("tpnet")  # "mlp" (Rempe's estimator) or "tpnet"
+    nnls_iterations: int = static(60)  # FISTA iterations of the per-frame force problem
+    # --- 2D evidence ---
+    w_reproj: float = 1.0
+    gm_scale: float = 4.0  # Geman-McClure scale, % of person height in the image
+    gm_scale_initial: float = 25.0  # the first fit's (TPNet's pose is far from the evidence)
+    # --- priors ---
+    w_pose: float = 0.5  # TPNet's root-relative 3D joints
+    pose_sigma_m: float = 0.1
+    w_limits: float = 10.0
+    limit_sigma_rad: float = 0.05
+    w_accel: float = 0.2  # 3D joint accelerations
+    accel_sigma: float = 10.0  # m/s^2
+    # --- contacts ---
+    contact_threshold: float = 0.5
+    w_contact_vel: float = 2.0  # labelled points stay still
+    contact_vel_sigma: float = 0.05  # m/s
+    w_contact_height: float = 2.0  # labelled points' soles on the floor
+    contact_height_sigma: float = 0.01  # m
+    outlier_height_m: float = 0.1  # labels further from the floor after the first fit are dropped
+    w_floor: float = 10.0  # every sole point above the floor
+    floor_sigma: float = 0.005  # m
+    # --- physics ---
+    mu: float = FRICTION_MU
+    w_dynamics: float = 20.0  # residual root wrench
+    dynamics_sigma: float = 0.05  # body weights (force), body weight x 1 m (torque)
+    w_stay: float = 0.2  # pull of the physics stage towards the kinematic fit
+    stay_sigma_m: float = 0.03
+    force_regularisation: float = 1e-3  # of the edge coefficients (body weights): unique forces
+    touch_m: float = 0.01  # a sole point this close to the floor may carry force, labelled or not
+
+
+def init_params(key: Array, model: Model, config: TrajOptConfig = TrajOptConfig()) -> dict:
+    """Fresh parameters: TPNet (the contact estimator ships its own, see
+    :mod:`jmocap.methods.contact_estimation`)."""
+    return init_tpnet_params(key, model, config)
+
+
+# ---------------------------------------------------------------------------------------
+# the trajectory: variables <-> configurations, finite differences
+# ---------------------------------------------------------------------------------------
+
+
+@struct.dataclass
+class Trajectory:
+    """The optimisation variables of a clip: root position, a rotation-vector offset of the root
+    orientation from ``base`` (held in :class:`Problem`), hinge angles."""
+
+    root_pos: Array  # (T, 3)
+    root_rot: Array  # (T, 3)
+    hinges: Array  # (T, nh)
+
+
+def to_q(model: Model, x: Trajectory, base_quat: Array) -> Array:
+    """Configurations (T, nq) of the variables."""
+    quat = quat_normalize(quat_mul(base_quat, quat_exp(x.root_rot)))
+    T = x.root_pos.shape[0]
+    q = jnp.zeros((T, model.nq), x.hinges.dtype)
+    return q.at[:, 0:3].set(x.root_pos).at[:, 3:7].set(quat).at[:, model.topo.hinge_qadr].set(x.hinges)
+
+
+def from_q(model: Model, q: Array) -> tuple[Trajectory, Array]:
+    """Variables (zero rotation offsets) and base quaternions of configurations (T, nq)."""
+    return Trajectory(q[:, 0:3], jnp.zeros_like(q[:, 0:3]), q[:, model.topo.hinge_qadr]), q[:, 3:7]
+
+
+def frame_velocities(q: Array, fps, length) -> tuple[Array, Array]:
+    """``(qd, qdd)`` (T, nv) of a trajectory whose first ``length`` frames are real.
+
+    ``v_t = (q_t (-) q_{t-1}) fps`` (MuJoCo's ``mj_differentiatePos``: world-frame root velocity,
+    body-frame angular velocity) is the velocity that the semi-implicit step
+    ``q_t = q_{t-1} (+) dt v_t`` reaches q_t with; then ``qdd_t = (v_{t+1} - v_t) fps`` and
+    ``qd_t = (v_t + v_{t+1}) / 2`` (second order). The first and last real frames take their
+    neighbour's acceleration; frames past ``length`` repeat the last real one.
+    """
+    T = q.shape[0]
+    dt = 1.0 / fps
+
+    def diff(a, b):
+        return jnp.concatenate([b[0:3] - a[0:3], quat_error(b[3:7], a[3:7]), b[7:] - a[7:]]) / dt
+
+    v = jax.vmap(diff)(jnp.concatenate([q[:1], q[:-1]]), q)  # v[0] = 0, unused
+    t = jnp.arange(T)
+    last = jnp.maximum(length - 1, 1)
+    a = jnp.clip(t, 1, jnp.maximum(last - 1, 1))  # acceleration between v[a] and v[a + 1]
+    qdd = (v[jnp.minimum(a + 1, last)] - v[a]) / dt
+    qd = 0.5 * (v[jnp.clip(t, 1, last)] + v[jnp.clip(t + 1, 1, last)])
+    return qd, qdd
+
+
+# ---------------------------------------------------------------------------------------
+# the clip's data
+# ---------------------------------------------------------------------------------------
+
+
+@struct.dataclass
+class Problem:
+    """What the energies of one clip read (all arrays; a batch adds a leading axis)."""
+
+    keypoints: Array  # (T, J, 3) pixels and confidence
+    intrinsics: Array
+    extrinsics: Array
+    unit_px: Array  # () one percent of the person's height in the image, pixels
+    fps: Array
+    mask: Array  # (T,) bool
+    length: Array  # () number of real frames (a prefix)
+    base_quat: Array  # (T, 4)
+    prior_rr: Array  # (T, J, 3) TPNet's root-relative joints (world orientation)
+    contacts: Array  # (T, 4) contact labels in {0, 1}
+    anchor_kp: Array  # (T, J, 3) joints of the kinematic fit (the physics stage's anchor)
+
+
+def person_height_px(keypoints: Array, mask: Array) -> Array:
+    """The median over real frames of the vertical extent of the confident keypoints (pixels),
+    at least 20 px."""
+    kp = jnp.asarray(keypoints)
+    ok = kp[..., 2] > 0.1
+    v = kp[..., 1]
+    ext = jnp.max(jnp.where(ok, v, -jnp.inf), -1) - jnp.min(jnp.where(ok, v, jnp.inf), -1)
+    ext = jnp.where(mask & (jnp.sum(ok, -1) >= 2), ext, jnp.nan)
+    return jnp.maximum(jnp.nan_to_num(jnp.nanmedian(ext), nan=200.0), 20.0)
+
+
+# ---------------------------------------------------------------------------------------
+# energies
+# ---------------------------------------------------------------------------------------
+
+
+def _frames_mean(x: Array, w: Array) -> Array:
+    return jnp.sum(x * w) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def geman_mcclure(r2: Array, c: Array) -> Array:
+    """Geman-McClure robust cost of squared residuals: ``c^2 r^2 / (c^2 + r^2)`` (~ r^2 near 0,
+    bounded by c^2)."""
+    c2 = c * c
+    return c2 * r2 / (c2 + r2)
+
+
+def kinematic_terms(model: Model, q: Array, geo: FrameGeometry, prob: Problem, config: TrajOptConfig,
+                    gm_scale) -> dict[str, Array]:
+    """The kinematic energies of a trajectory (see the module docstring), each a frame mean."""
+    layout = get_layout(config.layout)
+    m = prob.mask.astype(q.dtype)
+    cam = Camera(prob.intrinsics, jnp.zeros(2, q.dtype), prob.extrinsics)
+    uv = project(cam, geo.keypoints3d)
+    conf = prob.keypoints[..., 2]
+    r2 = jnp.sum((uv - prob.keypoints[..., :2]) ** 2, -1) / prob.unit_px**2
+    reproj = jnp.sum(conf * geman_mcclure(r2, gm_scale), -1)
+
+    root = jnp.mean(geo.keypoints3d[:, np.asarray(layout.root_indices)], 1, keepdims=True)
+    rr = geo.keypoints3d - root
+    pose = jnp.sum((rr - prob.prior_rr) ** 2, (-1, -2)) / config.pose_sigma_m**2
+
+    h = q[:, model.topo.hinge_qadr]
+    lo = jnp.asarray(model.q_lower, q.dtype)[model.topo.hinge_qadr]
+    hi = jnp.asarray(model.q_upper, q.dtype)[model.topo.hinge_qadr]
+    limits = jnp.sum(jax.nn.relu(lo - h) ** 2 + jax.nn.relu(h - hi) ** 2, -1) / config.limit_sigma_rad**2
+
+    # accelerations of the 3D joints at interior frames whose neighbours are real
+    x = geo.keypoints3d
+    acc = (x[2:] - 2 * x[1:-1] + x[:-2]) * prob.fps**2
+    m3 = m[2:] * m[1:-1] * m[:-2]
+    accel = jnp.sum(acc**2, (-1, -2)) / config.accel_sigma**2
+
+    # contacts: a labelled site's pair of sole points on the floor and still
+    sole = geo.sole.reshape(q.shape[0], 4, 2, 3)
+    c = prob.contacts.astype(q.dtype)
+    height = jnp.sum(c * jnp.sum(sole[..., 2] ** 2, -1), -1) / config.contact_height_sigma**2
+    step = jnp.sum((sole[1:] - sole[:-1]) ** 2, (-1, -2)) * prob.fps**2  # (T-1, 4)
+    still = jnp.sum(c[1:] * c[:-1] * step, -1) / config.contact_vel_sigma**2
+    floor = jnp.sum(jax.nn.relu(-geo.sole[..., 2]) ** 2, -1) / config.floor_sigma**2
+
+    return dict(
+        reproj=_frames_mean(reproj, m),
+        pose=_frames_mean(pose, m),
+        limits=_frames_mean(limits, m),
+        accel=_frames_mean(accel, m3),
+        contact_height=_frames_mean(height, m),
+        contact_still=_frames_mean(still, m[1:] * m[:-1]),
+        floor=_frames_mean(floor, m),
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# the physics: root wrench, contact forces by variable projection
+# ---------------------------------------------------------------------------------------
+
+
+def nnls(H: Array, g: Array, iterations: int) -> Array:
+    """``argmin_{c >= 0} 1/2 c^T H c - g^T c`` (H symmetric positive definite) by FISTA with the
+    Gershgorin bound of H's largest eigenvalue as the Lipschitz constant; from c = 0."""
+    L = jnp.max(jnp.sum(jnp.abs(H), -1))
+    step = 1.0 / jnp.maximum(L, 1e-12)
+
+    def body(_, s):
+        c, y, t = s
+        c_new = jax.nn.relu(y - step * (H @ y - g))
+        t_new = 0.5 * (1.0 + jnp.sqrt(1.0 + 4.0 * t * t))
+        y = c_new + ((t - 1.0) / t_new) * (c_new - c)
+        return c_new, y, t_new
+
+    z = jnp.zeros_like(g)
+    c, _, _ = jax.lax.fori_loop(0, iterations, body, (z, z, jnp.ones((), g.dtype)))
+    return c
+
+
+@struct.dataclass
+class FrameDynamics:
+    residual: Array  # (6,) root wrench the contact forces cannot produce, body weights (scaled)
+    coeff: Array  # (8, 4) edge coefficients, body weights
+    wrench: Array  # (nv,) M qdd + h
+    Jt: Array  # (nv, 8, 3) contact Jacobians, transposed
+    points: Array  # (8, 3) sole points
+
+
+def frame_dynamics(model: Model, kin, q: Array, qd: Array, qdd: Array, allowed: Array, config: TrajOptConfig,
+                   edges: Array) -> FrameDynamics:
+    """One frame's root-wrench residual after the best contact forces (variable projection):
+    forces only at ``allowed`` sole points (8,) bool, each a non-negative combination of the
+    pyramid edges ``edges`` (4, 3). Units: the force rows in body weights, the torque rows in
+    body weight x 1 m."""
+    pts, bodies, _ = S.sole_points(model, kin)
+    wrench = P.rnea(model, q, qd, qdd, kin=kin)
+    jacp, _ = P.point_jacobian(model, kin, pts, bodies)  # (8, 3, nv)
+    weight = S.body_weight(model, q.dtype)
+    # generalised root force of a unit body-weight force along each edge at each point
+    A = jnp.einsum("pkv,ek->vpe", jacp[..., :6], edges)[:6] * weight  # (6, 8, 4)
+    A = A * allowed[None, :, None]
+    A = A.reshape(6, -1) / weight
+    b = wrench[:6] / weight
+    H = A.T @ A + config.force_regularisation * jnp.eye(A.shape[1], dtype=A.dtype)
+    c = jax.lax.stop_gradient(nnls(jax.lax.stop_gradient(H), jax.lax.stop_gradient(A.T @ b), config.nnls_iterations))
+    residual = A @ c - b
+    return FrameDynamics(residual, c.reshape(8, 4), wrench, jnp.transpose(jacp, (2, 0, 1)), pts)
+
+
+@struct.dataclass
+class FrameGeometry:
+    keypoints3d: Array  # (T, J, 3)
+    sole: Array  # (T, 8, 3)
+    dynamics: FrameDynamics | None = None
+
+
+def geometry(model: Model, q: Array, layout: str, *, dynamics=None) -> FrameGeometry:
+    """Per frame, from one forward-kinematics pass: the layout's joints, the sole points and,
+    with ``dynamics = (qd, qdd, allowed, config)``, the frame's dynamics
+    (:func:`frame_dynamics`)."""
+    if dynamics is None:
+        def one(qt):
+            kin = P.forward_kinematics(model, qt)
+            pts, _, _ = S.sole_points(model, kin)
+            return P.keypoints(model, qt, layout, kin=kin), pts
+
+        kp, sole = jax.vmap(one)(q)
+        return FrameGeometry(kp, sole)
+    qd, qdd, allowed, config = dynamics
+    edges = friction_pyramid_edges(jnp.asarray([0.0, 0.0, 1.0], q.dtype), config.mu)
+
+    def one_dyn(qt, v, a, ok):
+        kin = P.forward_kinematics(model, qt)
+        return P.keypoints(model, qt, layout, kin=kin), frame_dynamics(model, kin, qt, v, a, ok, config, edges)
+
+    kp, fd = jax.vmap(one_dyn)(q, qd, qdd, allowed)
+    return FrameGeometry(kp, fd.points, fd)
+
+
+def allowed_points(contacts: Array, sole_height: Array, touch) -> Array:
+    """(T, 8) sole points that may carry force: those of a labelled site, and any touching the
+    floor (within ``touch``)."""
+    return (jnp.repeat(contacts > 0.5, 2, axis=-1) | (sole_height < touch))
+
+
+def dynamics_inputs(model: Model, q: Array, prob: Problem, config: TrajOptConfig):
+    """``(qd, qdd, allowed, config)`` for :func:`geometry`: the finite differences and the sole
+    points that may carry force (decided on the trajectory's current heights, a constant of the
+    step)."""
+    qd, qdd = frame_velocities(q, prob.fps, prob.length)
+    heights = jax.lax.stop_gradient(
+        jax.vmap(lambda x: S.sole_points(model, P.forward_kinematics(model, x))[2])(q))
+    return qd, qdd, allowed_points(prob.contacts, heights, config.touch_m), config
+
+
+def dynamics_term(fd: FrameDynamics, prob: Problem, config: TrajOptConfig) -> Array:
+    r2 = jnp.sum(fd.residual**2, -1) / config.dynamics_sigma**2
+    return _frames_mean(r2, prob.mask.astype(r2.dtype))
+
+
+def stay_term(keypoints3d: Array, prob: Problem, config: TrajOptConfig) -> Array:
+    """Squared distance of the joints (world frame) from those of the anchor (the kinematic fit)."""
+    d = jnp.sum((keypoints3d - prob.anchor_kp) ** 2, (-1, -2)) / config.stay_sigma_m**2
+    return _frames_mean(d, prob.mask.astype(d.dtype))
+
+
+KINEMATIC_WEIGHTS = ("reproj", "pose", "limits", "accel", "contact_height", "contact_still", "floor")
+
+
+def _weight(config: TrajOptConfig, name: str):
+    return {"reproj": config.w_reproj, "pose": config.w_pose, "limits": config.w_limits,
+            "accel": config.w_accel, "contact_height": config.w_contact_height,
+            "contact_still": config.w_contact_vel, "floor": config.w_floor,
+            "dynamics": config.w_dynamics, "stay": config.w_stay}[name]
+
+
+def objective_terms(model: Model, x: Trajectory, prob: Problem, config: TrajOptConfig, *, physics: bool,
+                    heights: bool = True, gm_scale=None) -> dict[str, Array]:
+    """Every energy of a stage, unweighted (``heights`` False: without the contact-height term;
+    ``gm_scale``: the robust scale of the reprojection term, default ``config.gm_scale``)."""
+    q = to_q(model, x, prob.base_quat)
+    gm = config.gm_scale if gm_scale is None else gm_scale
+    geo = geometry(model, q, config.layout, dynamics=dynamics_inputs(model, q, prob, config) if physics else None)
+    terms = kinematic_terms(model, q, geo, prob, config, gm)
+    if not heights:
+        terms["contact_height"] = jnp.zeros_like(terms["reproj"])
+    if physics:
+        terms["dynamics"] = dynamics_term(geo.dynamics, prob, config)
+        terms["stay"] = stay_term(geo.keypoints3d, prob, config)
+    return terms
+
+
+def objective(model: Model, x: Trajectory, prob: Problem, config: TrajOptConfig, *, physics: bool,
+              heights: bool = True, gm_scale=None) -> Array:
+    terms = objective_terms(model, x, prob, config, physics=physics, heights=heights, gm_scale=gm_scale)
+    return sum(_weight(config, k) * v for k, v in terms.items())
+
+
+# ---------------------------------------------------------------------------------------
+# the optimiser
+# ---------------------------------------------------------------------------------------
+
+
+@struct.dataclass
+class StageReport:
+    initial: Array  # () objective before
+    final: Array  # () objective after
+    grad_norm: Array  # () gradient norm at the end
+    iterations: Array  # () int
+
+
+def lbfgs(fun, x0, iterations: int, memory: int, scale=None):
+    """``iterations`` L-BFGS steps (optax, zoom line search) on ``fun`` from ``x0``, in the
+    variables ``y`` of ``x = x0 + scale * y`` (a diagonal preconditioner, default 1); the best
+    iterate seen is returned (a failed line search cannot make the result worse)."""
+    scale = jax.tree.map(jnp.ones_like, x0) if scale is None else scale
+
+    def to_x(y):
+        return jax.tree.map(lambda a, s, b: a + s * b, x0, scale, y)
+
+    g_fun = lambda y: fun(to_x(y))  # noqa: E731
+    opt = optax.lbfgs(memory_size=memory)
+    value_and_grad = optax.value_and_grad_from_state(g_fun)
+    y0 = jax.tree.map(jnp.zeros_like, x0)
+    f0 = g_fun(y0)
+
+    def step(carry, _):
+        y, state, best, fbest = carry
+        value, grad = value_and_grad(y, state=state)
+        updates, state = opt.update(grad, state, y, value=value, grad=grad, value_fn=g_fun)
+        y_new = optax.apply_updates(y, updates)
+        better = value < fbest
+        best = jax.tree.map(lambda a, b: jnp.where(better, a, b), y, best)
+        return (y_new, state, best, jnp.where(better, value, fbest)), None
+
+    (y, state, best, fbest), _ = jax.lax.scan(step, (y0, opt.init(y0), y0, f0), None, length=iterations)
+    f_last = g_fun(y)
+    better = f_last < fbest
+    best = jax.tree.map(lambda a, b: jnp.where(better, a, b), y, best)
+    fbest = jnp.minimum(f_last, fbest)
+    gnorm = optax.tree_utils.tree_l2_norm(jax.grad(g_fun)(best))
+    return to_x(best), StageReport(f0, fbest, gnorm, jnp.asarray(iterations))
+
+
+def diagonal_scale(model: Model, x: Trajectory, prob: Problem, config: TrajOptConfig) -> Trajectory:
+    """A diagonal preconditioner: ``1 / sqrt(diag(J^T J))`` of the per-frame Gauss-Newton
+    approximation of the reprojection and pose-prior terms at ``x`` (each frame's variables
+    move its own joints only; the root's position and orientation move all of them, a distal
+    hinge two or three: their curvatures differ by orders of magnitude, which L-BFGS's scalar
+    initial Hessian cannot absorb in a few dozen iterations)."""
+    layout = get_layout(config.layout)
+    roots = np.asarray(layout.root_indices)
+    cam = Camera(prob.intrinsics, jnp.zeros(2, x.hinges.dtype), prob.extrinsics)
+    T = x.root_pos.shape[0]
+
+    def residual(v, base, kp, prior_rr):
+        xt = Trajectory(v[:3][None], v[3:6][None], v[6:][None])
+        q = to_q(model, xt, base[None])[0]
+        p3 = P.keypoints(model, q, config.layout)
+        conf = jnp.sqrt(jnp.maximum(kp[:, 2], 1e-3))
+        r1 = (conf[:, None] * (project(cam, p3) - kp[:, :2]) / prob.unit_px).ravel()
+        rr = p3 - jnp.mean(p3[roots], 0)
+        r2 = (jnp.sqrt(config.w_pose) * (rr - prior_rr) / config.pose_sigma_m).ravel()
+        # the diagonal of the acceleration term's [1, -2, 1] stencil: 1 + 4 + 1
+        r3 = (jnp.sqrt(6.0 * config.w_accel) * prob.fps**2 / config.accel_sigma * p3).ravel()
+        return jnp.concatenate([jnp.sqrt(config.w_reproj) * r1, r2, r3])
+
+    v = jnp.concatenate([x.root_pos, x.root_rot, x.hinges], -1)
+    J = jax.vmap(jax.jacfwd(residual))(v, prob.base_quat, prob.keypoints, prob.prior_rr)  # (T, R, n)
+    d = jnp.sum(J * J, 1)  # (T, n)
+    d = d + 1e-3 * jnp.mean(d, -1, keepdims=True) + 1e-6
+    s = jnp.sqrt(T / d)  # the objective is a frame mean: its curvature is d / T
+    return Trajectory(s[:, :3], s[:, 3:6], s[:, 6:])
+
+
+# ---------------------------------------------------------------------------------------
+# the method
+# ---------------------------------------------------------------------------------------
+
+
+def contact_labels(params: dict, inputs: ClipInputs, tpnet_prob: Array, config: TrajOptConfig) -> Array:
+    """(T, 4) contact probabilities of the configured source."""
+    if config.contact_source == "tpnet":
+        return tpnet_prob
+    if config.contact_source == "mlp":
+        from jmocap.methods import contact_estimation as CE
+
+        cparams = params.get("contacts") if isinstance(params, dict) and "contacts" in params else CE.default_contact_params()
+        return CE.estimate_contacts(cparams, inputs, config.layout)
+    raise ValueError(f"unknown contact_source {config.contact_source!r} (mlp, tpnet)")
+
+
+def problem(model: Model, inputs: ClipInputs, q_hat: Array, contacts: Array, config: TrajOptConfig) -> Problem:
+    layout = get_layout(config.layout)
+    mask = jnp.asarray(inputs.mask)
+    kp = jnp.asarray(inputs.keypoints)
+    kp = kp.at[..., 2].set(jnp.where(mask[:, None], kp[..., 2], 0.0))
+    prior = jax.vmap(lambda x: P.keypoints(model, x, config.layout))(q_hat)
+    prior_rr = prior - jnp.mean(prior[:, np.asarray(layout.root_indices)], 1, keepdims=True)
+    _, base = from_q(model, q_hat)
+    return Problem(
+        keypoints=kp, intrinsics=jnp.asarray(inputs.intrinsics, q_hat.dtype),
+        extrinsics=jnp.asarray(inputs.extrinsics, q_hat.dtype),
+        unit_px=person_height_px(kp, mask) / 100.0, fps=jnp.asarray(inputs.fps, q_hat.dtype), mask=mask,
+        length=jnp.sum(mask.astype(jnp.int32)), base_quat=base, prior_rr=prior_rr,
+        contacts=(contacts > config.contact_threshold).astype(q_hat.dtype) * mask[:, None], anchor_kp=prior,
+    )
+
+
+def initial_trajectory(model: Model, q_hat: Array, mask: Array) -> Array:
+    """TPNet's poses, moved vertically as a whole so that the lowest sole point over the clip's
+    real frames touches the floor (TPNet's depth error floats or sinks the body)."""
+    sole_h = jax.vmap(lambda x: S.sole_points(model, P.forward_kinematics(model, x))[2])(q_hat)
+    low = jnp.min(jnp.where(mask[:, None], sole_h, jnp.inf))
+    low = jnp.where(jnp.isfinite(low), low, 0.0)
+    # per frame, the lowest sole point (the supporting foot) at most this far above the floor
+    return q_hat.at[:, 2].add(-low)
+
+
+@struct.dataclass
+class Fit:
+    q: Array  # (T, nq)
+    grf: Array  # (T, 4, 3)
+    tau: Array  # (T, nv)
+    qd: Array  # (T, nv)
+    contacts: Array  # (T, 4) the labels the fit used
+    diagnostics: dict
+    q_kinematic: Array  # (T, nq) the kinematic fit (before the physics stage)
+
+
+def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fit:
+    """The stages on one window (see the module docstring)."""
+    x0, base = from_q(model, q_init)
+    prob = prob.replace(base_quat=base)
+    # stage 0: every frame on its own (no temporal or contact-height terms) with a wide robust
+    # scale: TPNet's pose is far from the evidence, and the temporal terms would make these
+    # first, large moves ill-conditioned (Rempe App. B.4: first pass without the floor)
+    per_frame = config.replace(w_accel=0.0, w_contact_vel=0.0)
+    f0 = lambda x: objective(model, x, prob, per_frame, physics=False, heights=False,  # noqa: E731
+                             gm_scale=config.gm_scale_initial)
+    x1, rep1 = lbfgs(f0, x0, config.kinematic_iterations, config.memory,
+                     diagonal_scale(model, x0, prob, per_frame))
+    # outlier labels: points labelled in contact that the fit holds far above the floor (their
+    # App. B.4 fits the floor robustly; here the floor is known, z = 0)
+    q1 = to_q(model, x1, prob.base_quat)
+    sole_h = jax.vmap(lambda x: S.sole_points(model, P.forward_kinematics(model, x))[2])(q1)
+    low = jnp.min(jnp.where(prob.mask[:, None], sole_h, jnp.inf))
+    x1 = x1.replace(root_pos=x1.root_pos.at[:, 2].add(-jnp.where(jnp.isfinite(low), low, 0.0)))
+    site_h = jnp.min(sole_h.reshape(-1, 4, 2), -1) - jnp.where(jnp.isfinite(low), low, 0.0)
+    contacts = prob.contacts * (site_h < config.outlier_height_m)
+    prob = prob.replace(contacts=contacts)
+    # stage 1: the full kinematic fit
+    f1 = lambda x: objective(model, x, prob, config, physics=False)  # noqa: E731
+    x2, rep2 = lbfgs(f1, x1, config.kinematic_iterations, config.memory, diagonal_scale(model, x1, prob, config))
+    q_kin = to_q(model, x2, prob.base_quat)
+    # stage 2: physics, anchored to the kinematic fit
+    prob = prob.replace(anchor_kp=jax.vmap(lambda x: P.keypoints(model, x, config.layout))(q_kin))
+    f2 = lambda x: objective(model, x, prob, config, physics=True)  # noqa: E731
+    x3, rep3 = lbfgs(f2, x2, config.physics_iterations, config.memory, diagonal_scale(model, x2, prob, config))
+    q = to_q(model, x3, prob.base_quat)
+
+    fd = geometry(model, q, config.layout, dynamics=dynamics_inputs(model, q, prob, config)).dynamics
+    weight = S.body_weight(model, q.dtype)
+    edges = friction_pyramid_edges(jnp.asarray([0.0, 0.0, 1.0], q.dtype), config.mu)
+    force = jnp.einsum("tpe,ek->tpk", fd.coeff, edges) * weight  # (T, 8, 3)
+    tau = fd.wrench - jnp.einsum("tvpk,tpk->tv", fd.Jt, force)
+    qd, _ = frame_velocities(q, prob.fps, prob.length)
+    terms = objective_terms(model, x3, prob, config, physics=True)
+    m = prob.mask.astype(q.dtype)
+    res = jnp.linalg.norm(tau[:, :3], axis=-1) / weight
+    diagnostics = dict(
+        objective_kinematic=rep2.final, objective_initial=rep1.initial, objective_final=rep3.final,
+        objective_physics_initial=rep3.initial, grad_norm=rep3.grad_norm,
+        iterations=rep1.iterations + rep2.iterations + rep3.iterations,
+        residual_mean_bw=_frames_mean(res, m), residual_max_bw=jnp.max(jnp.where(prob.mask, res, 0.0)),
+        penetration_max_m=jnp.max(jnp.where(prob.mask[:, None], jax.nn.relu(-fd.points[..., 2]), 0.0)),
+        **{f"term_{k}": v for k, v in terms.items()},
+    )
+    grf = force.reshape(-1, 4, 2, 3).sum(2) * prob.mask[:, None, None]
+    return Fit(q, grf, tau * m[:, None], qd, contacts, diagnostics, q_kin)
+
+
+def reconstruct(params: dict, model: Model, inputs: ClipInputs, config: TrajOptConfig = TrajOptConfig()) -> Motion:
+    """2D keypoints of one clip -> a :class:`Motion` fitted to them and to the equations of
+    motion (see the module docstring)."""
+    tp = S.target_pose(params, model, inputs, config)
+    prob_tp = S.contact_probability(tp.contact_logits)
+    mask = jnp.asarray(inputs.mask)
+    prob_c = contact_labels(params, inputs, prob_tp, config)
+    q_hat = tp.q_hat
+    q0 = initial_trajectory(model, q_hat, mask)
+    pr = problem(model, inputs, q_hat, prob_c, config)
+    out = fit(model, pr, q0, config)
+    return Motion(out.q, out.qd, out.tau, out.grf, prob_c * mask[:, None], q_hat, mask,
+                  diagnostics=out.diagnostics)
+
+
+def history(config) -> int:
+    """Non-causal: a whole clip is one chunk (no history)."""
+    return 0
+
+
+def init_carry(model: Model, config=None, dtype=jnp.float32):
+    """No state is carried (whole clips)."""
+    return jnp.zeros((), dtype)
+
+
+def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry, first, config, history: int):
+    """The whole clip (the engine runs non-causal methods on whole clips padded to a bucket)."""
+    return carry, reconstruct(params, model, inputs, config)
+
+
+METHOD = register(
+    Method(
+        name="trajopt",
+        summary="offline: whole-clip robust fit to the 2D keypoints, then physics-based trajectory "
+        "optimisation (equations of motion, contact forces in friction pyramids)",
+        paper="001 (Rempe et al. 2020), Sec. 3.1-3.3, on 000's (Neural PhysCap) kinematic target",
+        config_type=TrajOptConfig,
+        reconstruct=reconstruct,
+        reconstruct_chunk=reconstruct_chunk,
+        init_carry=init_carry,
+        history=history,
+        init_params=init_params,
+        causal=False,
+    )
+)
+
+__all__ = ["METHOD", "TrajOptConfig", "Trajectory", "fit", "frame_velocities", "reconstruct"]
