@@ -166,6 +166,8 @@ def reconstruct_archive(
                 extra = {}
                 if res.get("certified") is not None:  # per-frame QP certificates (e.g. ``pip``)
                     extra["uncertified_frames"] = int(np.sum(~np.asarray(res["certified"], bool)))
+                if res.get("diagnostics") is not None:  # a solver's per-clip report (e.g. ``trajopt``)
+                    extra["diagnostics"] = {k: round(float(v), 6) for k, v in res["diagnostics"].items()}
                 if write_bvh is not None:
                     extra["bvh"] = _write_bvh(write_bvh, writer.root, src.name, model, res["q"], clip.fps)
                 writer.add_result(

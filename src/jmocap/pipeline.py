@@ -158,6 +158,10 @@ class Reconstructor:
         self.history = self.method.history(config)
 
     def plan(self, clip: Clip) -> tuple[int, ...]:
+        """A causal method's chunks; a non-causal one (``trajopt``) sees its whole clip at once,
+        padded to a multiple of ``bucket`` (it splits long clips into windows itself)."""
+        if not self.method.causal:
+            return (-(-clip.num_frames // self.bucket) * self.bucket,)
         return chunk_plan(clip.num_frames, self.chunk, self.bucket)
 
     def run(self, clips: Sequence[Clip]) -> list[dict[str, np.ndarray]]:
@@ -211,10 +215,13 @@ class Reconstructor:
                 fetched.append(_fields(jax.device_get(pending)))
             pending, start = res, start + length
         fetched.append(_fields(jax.device_get(pending)))
-        return [
-            {k: np.concatenate([f[k][i] for f in fetched])[: c.num_frames] for k in fetched[0]}
-            for i, c in enumerate(clips)
-        ]
+        out = []
+        for i, c in enumerate(clips):
+            res = {k: np.concatenate([f[k][i] for f in fetched])[: c.num_frames] for k in fetched[0] if k != "diagnostics"}
+            if "diagnostics" in fetched[-1]:  # per-clip scalars of the clip's last chunk
+                res["diagnostics"] = {k: float(v[i]) for k, v in fetched[-1]["diagnostics"].items()}
+            out.append(res)
+        return out
 
 
 def _fields(res: ChunkResult) -> dict[str, np.ndarray]:
@@ -223,6 +230,7 @@ def _fields(res: ChunkResult) -> dict[str, np.ndarray]:
         q=m.q, qd=m.qd, tau=m.tau, grf=m.grf, contact_prob=m.contact_prob, target_q=m.target_q,
         keypoints3d=res.keypoints3d,
         **({} if m.certified is None else {"certified": m.certified}),
+        **({} if m.diagnostics is None else {"diagnostics": m.diagnostics}),
     )
 
 

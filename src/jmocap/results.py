@@ -17,6 +17,9 @@ keypoints3d        float32    (T, J, 3)     world-frame joints of ``q`` in ``lay
 keypoints2d        float32    (T, J, 3)     the input keypoints (pixels, confidence)
 certified          bool       (T,)          optional, methods that solve a QP per frame: every
                                             solve of the frame passed its KKT check
+diagnostics        str        ()            optional, JSON object of per-clip numbers a method
+                                            reports about its solve (``trajopt``: objective
+                                            before/after, terms, iterations, residual)
 fps                float64    ()            frames per second
 height_m, mass_kg  float64    ()            the character's height and mass
 layout             str        ()            keypoint layout
@@ -136,6 +139,8 @@ def result_arrays(
         **{k: np.asarray(result[k], np.float32) for k in MOTION_FIELDS},
         "keypoints2d": np.asarray(clip.keypoints, np.float32),
         **({"certified": np.asarray(result["certified"], bool)} if result.get("certified") is not None else {}),
+        **({"diagnostics": np.array(json.dumps({k: float(v) for k, v in result["diagnostics"].items()}))}
+           if result.get("diagnostics") is not None else {}),
         "fps": np.array(clip.fps, np.float64),
         "height_m": np.array(height_m, np.float64),
         "mass_kg": np.array(mass_kg, np.float64),
@@ -202,6 +207,15 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
         if a.shape != (T,) or a.dtype.kind != "b":
             raise FormatError(f"{path}: field 'certified' has shape {a.shape} ({a.dtype}), expected ({T},) booleans")
         out["certified"] = a
+    out["diagnostics"] = None
+    if "diagnostics" in data:
+        try:
+            diag = json.loads(str(data["diagnostics"]))
+            if not isinstance(diag, dict) or not all(isinstance(v, (int, float)) for v in diag.values()):
+                raise ValueError("not an object of numbers")
+        except ValueError as e:
+            raise FormatError(f"{path}: field 'diagnostics' is not a JSON object of numbers ({e})") from None
+        out["diagnostics"] = diag
     for key, shape in _STATIC.items():
         if key in data:
             a = data[key]

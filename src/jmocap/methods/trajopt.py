@@ -90,7 +90,7 @@ class TrajOptConfig(KinematicConfig):
     gm_scale: float = 4.0  # Geman-McClure scale, % of person height in the image
     gm_scale_initial: float = 25.0  # the first fit's (TPNet's pose is far from the evidence)
     # --- priors ---
-    w_pose: float = 0.5  # TPNet's root-relative 3D joints
+    w_pose: float = 2.0  # TPNet's root-relative 3D joints
     pose_sigma_m: float = 0.1
     w_limits: float = 10.0
     limit_sigma_rad: float = 0.05
@@ -533,9 +533,7 @@ def initial_trajectory(model: Model, q_hat: Array, mask: Array) -> Array:
 @struct.dataclass
 class Fit:
     q: Array  # (T, nq)
-    grf: Array  # (T, 4, 3)
-    tau: Array  # (T, nv)
-    qd: Array  # (T, nv)
+    force: Array  # (T, 8, 3) world-frame forces at the sole points (N)
     contacts: Array  # (T, 4) the labels the fit used
     diagnostics: dict
     q_kinematic: Array  # (T, nq) the kinematic fit (before the physics stage)
@@ -573,39 +571,127 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     q = to_q(model, x3, prob.base_quat)
 
     fd = geometry(model, q, config.layout, dynamics=dynamics_inputs(model, q, prob, config)).dynamics
-    weight = S.body_weight(model, q.dtype)
     edges = friction_pyramid_edges(jnp.asarray([0.0, 0.0, 1.0], q.dtype), config.mu)
-    force = jnp.einsum("tpe,ek->tpk", fd.coeff, edges) * weight  # (T, 8, 3)
-    tau = fd.wrench - jnp.einsum("tvpk,tpk->tv", fd.Jt, force)
-    qd, _ = frame_velocities(q, prob.fps, prob.length)
+    force = jnp.einsum("tpe,ek->tpk", fd.coeff, edges) * S.body_weight(model, q.dtype)  # (T, 8, 3)
     terms = objective_terms(model, x3, prob, config, physics=True)
-    m = prob.mask.astype(q.dtype)
-    res = jnp.linalg.norm(tau[:, :3], axis=-1) / weight
     diagnostics = dict(
-        objective_kinematic=rep2.final, objective_initial=rep1.initial, objective_final=rep3.final,
-        objective_physics_initial=rep3.initial, grad_norm=rep3.grad_norm,
+        objective_initial=rep1.initial, objective_kinematic=rep2.final, objective_physics_initial=rep3.initial,
+        objective_final=rep3.final, grad_norm=rep3.grad_norm,
         iterations=rep1.iterations + rep2.iterations + rep3.iterations,
-        residual_mean_bw=_frames_mean(res, m), residual_max_bw=jnp.max(jnp.where(prob.mask, res, 0.0)),
-        penetration_max_m=jnp.max(jnp.where(prob.mask[:, None], jax.nn.relu(-fd.points[..., 2]), 0.0)),
         **{f"term_{k}": v for k, v in terms.items()},
     )
-    grf = force.reshape(-1, 4, 2, 3).sum(2) * prob.mask[:, None, None]
-    return Fit(q, grf, tau * m[:, None], qd, contacts, diagnostics, q_kin)
+    return Fit(q, force * prob.mask[:, None, None], contacts, diagnostics, q_kin)
+
+
+def outputs(model: Model, q: Array, force: Array, mask: Array, fps) -> tuple[Array, Array, Array, dict]:
+    """``(qd, tau, grf, report)`` of a trajectory and its sole-point forces (T, 8, 3):
+    ``tau = M qdd + h - J_c^T lambda`` at the finite differences of :func:`frame_velocities`
+    (``tau[:6]`` the residual root wrench), the forces summed per contact site (T, 4, 3), and
+    the residual and penetration that remain."""
+    length = jnp.sum(mask.astype(jnp.int32))
+    qd, qdd = frame_velocities(q, jnp.asarray(fps, q.dtype), length)
+
+    def one(qt, v, a, f):
+        kin = P.forward_kinematics(model, qt)
+        pts, bodies, h = S.sole_points(model, kin)
+        jacp, _ = P.point_jacobian(model, kin, pts, bodies)
+        return P.rnea(model, qt, v, a, kin=kin) - jnp.einsum("pkv,pk->v", jacp, f), h
+
+    tau, height = jax.vmap(one)(q, qd, qdd, force)
+    m = mask.astype(q.dtype)
+    res = jnp.linalg.norm(tau[:, :3], axis=-1) / S.body_weight(model, q.dtype)
+    report = dict(residual_mean_bw=_frames_mean(res, m), residual_max_bw=jnp.max(jnp.where(mask, res, 0.0)),
+                  penetration_max_m=jnp.max(jnp.where(mask[:, None], jax.nn.relu(-height), 0.0)))
+    grf = force.reshape(-1, 4, 2, 3).sum(2) * m[:, None, None]
+    return qd * m[:, None], tau * m[:, None], grf, report
+
+
+def window_starts(T: int, window: int, overlap: int) -> tuple[int, ...]:
+    """Static start frames of the windows covering T frames (the last one ends at T)."""
+    if window <= 0 or T <= window:
+        return (0,)
+    if not 0 <= overlap < window:
+        raise ValueError(f"overlap must be in [0, window), got {overlap} for window {window}")
+    starts = list(range(0, T - window, window - overlap)) + [T - window]
+    return tuple(sorted(set(starts)))
+
+
+def window_weights(T: int, starts: tuple[int, ...], window: int, overlap: int) -> np.ndarray:
+    """(n, T) cross-fade weights of the windows (linear ramps over each overlap, summing to 1)."""
+    n = len(starts)
+    w = np.zeros((n, T))
+    t = np.arange(T)
+    for k, s in enumerate(starts):
+        inside = (t >= s) & (t < s + window)
+        up = np.clip((t - s + 1) / (overlap + 1), 0, 1) if k > 0 else np.ones(T)
+        down = np.clip((s + window - t) / (overlap + 1), 0, 1) if k < n - 1 else np.ones(T)
+        w[k] = inside * up * down
+    return w / np.maximum(w.sum(0, keepdims=True), 1e-12)
+
+
+def _blend_q(qs: Array, w: Array) -> Array:
+    """Weighted mean (T, nq) of window trajectories (n, T, nq): positions and angles linearly,
+    quaternions sign-aligned to the first window's and renormalised."""
+    ref = qs[0, :, 3:7]
+    sign = jnp.where(jnp.sum(qs[:, :, 3:7] * ref, -1, keepdims=True) < 0, -1.0, 1.0)
+    qs = qs.at[:, :, 3:7].multiply(sign)
+    q = jnp.sum(w[..., None] * qs, 0)
+    return q.at[:, 3:7].set(quat_normalize(q[:, 3:7]))
+
+
+def fit_clip(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fit:
+    """:func:`fit` over the whole clip, or over overlapping windows of ``config.window`` frames
+    (``jax.vmap``-ed: the windows are a batch) cross-faded over their ``config.overlap`` shared
+    frames. A clip no longer than a window is one window."""
+    T = q_init.shape[0]
+    W, O = config.window, config.overlap
+    starts = window_starts(T, W, O)
+    if len(starts) == 1:
+        return fit(model, prob, q_init, config)
+    idx = np.asarray(starts)[:, None] + np.arange(W)[None]  # (n, W)
+
+    def cut(a):
+        return a[idx] if (hasattr(a, "ndim") and a.ndim and a.shape[0] == T) else a
+
+    probs = jax.tree.map(cut, prob)
+    local = jnp.asarray(prob.mask)[idx]
+    probs = probs.replace(mask=local, length=jnp.sum(local.astype(jnp.int32), -1),
+                          unit_px=jnp.broadcast_to(prob.unit_px, (len(starts),)),
+                          intrinsics=jnp.broadcast_to(prob.intrinsics, (len(starts), *prob.intrinsics.shape)),
+                          extrinsics=jnp.broadcast_to(prob.extrinsics, (len(starts), *prob.extrinsics.shape)),
+                          fps=jnp.broadcast_to(prob.fps, (len(starts),)))
+    fits = jax.vmap(lambda p, q0: fit(model, p, q0, config))(probs, q_init[idx])
+    wnp = window_weights(T, starts, W, O)
+    # only a window's real frames count; renormalise where the weights no longer sum to one
+    wm = jnp.asarray(wnp, q_init.dtype) * jnp.zeros((len(starts), T), q_init.dtype).at[
+        np.repeat(np.arange(len(starts)), W), idx.ravel()].set(local.ravel().astype(q_init.dtype))
+    wm = wm / jnp.maximum(jnp.sum(wm, 0, keepdims=True), 1e-12)
+
+    def spread(a):  # (n, W, ...) -> (n, T, ...) in clip frames
+        out = jnp.zeros((len(starts), T, *a.shape[2:]), a.dtype)
+        return out.at[np.repeat(np.arange(len(starts)), W), idx.ravel()].set(a.reshape(-1, *a.shape[2:]))
+
+    q = _blend_q(spread(fits.q), wm)
+    q_kin = _blend_q(spread(fits.q_kinematic), wm)
+    force = jnp.sum(wm[..., None, None] * spread(fits.force), 0)
+    contacts = jnp.sum(wm[..., None] * spread(fits.contacts), 0)
+    share = jnp.sum(local, -1) / jnp.maximum(jnp.sum(local), 1)
+    diagnostics = {k: jnp.sum(share * v) for k, v in fits.diagnostics.items()}
+    diagnostics["iterations"] = jnp.sum(fits.diagnostics["iterations"])
+    return Fit(q, force * prob.mask[:, None, None], contacts, diagnostics, q_kin)
 
 
 def reconstruct(params: dict, model: Model, inputs: ClipInputs, config: TrajOptConfig = TrajOptConfig()) -> Motion:
     """2D keypoints of one clip -> a :class:`Motion` fitted to them and to the equations of
     motion (see the module docstring)."""
     tp = S.target_pose(params, model, inputs, config)
-    prob_tp = S.contact_probability(tp.contact_logits)
     mask = jnp.asarray(inputs.mask)
-    prob_c = contact_labels(params, inputs, prob_tp, config)
-    q_hat = tp.q_hat
-    q0 = initial_trajectory(model, q_hat, mask)
-    pr = problem(model, inputs, q_hat, prob_c, config)
-    out = fit(model, pr, q0, config)
-    return Motion(out.q, out.qd, out.tau, out.grf, prob_c * mask[:, None], q_hat, mask,
-                  diagnostics=out.diagnostics)
+    prob_c = contact_labels(params, inputs, S.contact_probability(tp.contact_logits), config)
+    q0 = initial_trajectory(model, tp.q_hat, mask)
+    out = fit_clip(model, problem(model, inputs, tp.q_hat, prob_c, config), q0, config)
+    qd, tau, grf, report = outputs(model, out.q, out.force, mask, inputs.fps)
+    return Motion(out.q, qd, tau, grf, prob_c * mask[:, None], tp.q_hat, mask,
+                  diagnostics={**out.diagnostics, **report})
 
 
 def history(config) -> int:

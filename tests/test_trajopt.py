@@ -1,0 +1,203 @@
+"""``trajopt`` (Rempe et al. 2020 on jmocap's full-body dynamics): its finite differences against
+MuJoCo, its force subproblem against Clarabel, its equations of motion against the MuJoCo
+simulation that made the ground truth, its objective's gradient against finite differences, a
+clip that already satisfies the physics, and windows stitched without a seam (slow)."""
+
+from __future__ import annotations
+
+from importlib.resources import files
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from jmocap import physics as P
+from jmocap.camera import project
+from jmocap.data.clip import load_clip
+from jmocap.inputs import ClipInputs
+from jmocap.methods import get_method
+from jmocap.methods import trajopt as TO
+from jmocap.model import character
+from tests.conftest import x64
+
+DEMO = files("jmocap") / "assets/demo/ground_truth"
+
+
+def _walk():
+    clip = load_clip(DEMO / "demo_walk.npz")
+    return clip, character(clip.height_m, clip.mass_kg)
+
+
+def _quiet_window(clip, frames: int) -> int:
+    """The start of the ``frames``-frame window where the ground truth's rescue residual is least
+    (the simulation's own physics holds there without help)."""
+    r = np.linalg.norm(clip.gt_residual[:, :3], axis=-1)
+    worst = [r[s:s + frames].max() for s in range(clip.num_frames - frames + 1)]
+    return int(np.argmin(worst))
+
+
+def test_frame_velocities_against_mujoco():
+    """v_t is MuJoCo's mj_differentiatePos between frames; qdd and qd its differences/means; the
+    ends take their neighbour's acceleration; frames past the clip repeat its last one."""
+    clip, model = _walk()
+    mj = model.mj
+    q = np.asarray(clip.gt_q[:12], np.float64)
+    fps = float(clip.fps)
+    with x64():
+        qd, qdd = TO.frame_velocities(jnp.asarray(q), fps, 10)
+    v = np.zeros((12, mj.nv))
+    for t in range(1, 12):
+        mujoco.mj_differentiatePos(mj, v[t], 1.0 / fps, q[t - 1], q[t])
+    for t in range(1, 9):
+        np.testing.assert_allclose(qdd[t], (v[t + 1] - v[t]) * fps, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(qd[t], 0.5 * (v[t] + v[t + 1]), rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(qdd[0], qdd[1], atol=1e-9)
+    np.testing.assert_allclose(qdd[9], qdd[8], atol=1e-9)
+    np.testing.assert_allclose(qdd[11], qdd[8], atol=1e-9)
+    np.testing.assert_allclose(qd[9], v[9], atol=1e-8)
+
+
+def test_force_subproblem_against_clarabel():
+    """The FISTA solve of ``min_{c >= 0} 1/2 c^T H c - g^T c`` converges to Clarabel's solution."""
+    clarabel = pytest.importorskip("clarabel")
+    from scipy import sparse
+
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        A = rng.normal(size=(6, 32))
+        H = A.T @ A + 1e-3 * np.eye(32)
+        g = A.T @ rng.normal(size=6)
+        with x64():
+            c = np.asarray(TO.nnls(jnp.asarray(H), jnp.asarray(g), 20000))
+        P_ = sparse.csc_matrix(np.triu(H))
+        cones = [clarabel.NonnegativeConeT(32)]
+        s = clarabel.DefaultSettings()
+        s.verbose = False
+        s.tol_gap_abs = s.tol_gap_rel = s.tol_feas = 1e-12
+        sol = clarabel.DefaultSolver(P_, -g, sparse.csc_matrix(-np.eye(32)), np.zeros(32), cones, s).solve()
+        ref = np.asarray(sol.x)
+        obj = lambda x: 0.5 * x @ H @ x - g @ x  # noqa: E731
+        assert obj(c) - obj(ref) < 1e-8 * max(1.0, abs(obj(ref)))
+        assert np.all(c >= 0)
+
+
+def test_equations_of_motion_against_the_simulation():
+    """On a ground-truth clip simulated in MuJoCo, ``rnea`` at the trajectory's finite
+    differences minus ``J_c^T`` of the recorded contact forces leaves the recorded rescue
+    residual as the root force (to 2 % of body weight on average)."""
+    clip, model = _walk()
+    q = jnp.asarray(clip.gt_q)
+    qd, qdd = TO.frame_velocities(q, jnp.float32(clip.fps), clip.num_frames)
+
+    def root_force(qt, v, a, f):
+        return (P.rnea(model, qt, v, a) - P.contact_jacobian(model, qt).T @ f.ravel())[:3]
+
+    r = np.asarray(jax.vmap(root_force)(q, qd, qdd, jnp.asarray(clip.gt_grf)))
+    W = model.total_mass * 9.81
+    err = np.linalg.norm(r - clip.gt_residual[:, :3], axis=-1) / W
+    assert err[1:-1].mean() < 0.02, err.mean()
+
+
+def _problem(model, clip, start, frames, config, dtype=jnp.float32):
+    """A trajopt problem of a ground-truth window: exact keypoints (its own projection,
+    confidence 1), ground-truth contacts, the ground truth as prior."""
+    sl = slice(start, start + frames)
+    cut = clip.slice(start, start + frames)
+    inputs = ClipInputs.from_clip(cut)
+    q = jnp.asarray(clip.gt_q[sl], dtype)
+    kp3 = jax.vmap(lambda x: P.keypoints(model, x, "body25"))(q)
+    uv = project(inputs.camera, kp3)
+    inputs = inputs.replace(keypoints=np.concatenate([np.asarray(uv), np.ones((frames, 25, 1))], -1).astype(np.float32))
+    prob = TO.problem(model, inputs, q, jnp.asarray(clip.gt_contacts[sl], dtype), config)
+    return prob, q, inputs
+
+
+def test_objective_gradient_matches_finite_differences():
+    """The gradient of the physics-stage objective (reprojection, priors, contacts, floor, the
+    residual after the optimal forces by Danskin's theorem) against central differences, in
+    float64 with the force subproblem solved to convergence."""
+    clip, model = _walk()
+    config = get_method("trajopt").make_config(nnls_iterations=4000)
+    with x64():
+        model64 = character(clip.height_m, clip.mass_kg)
+        start = _quiet_window(clip, 8)
+        prob, q, _ = _problem(model64, clip, start, 8, config, jnp.float64)
+        x, base = TO.from_q(model64, q)
+        prob = prob.replace(base_quat=base)
+        rng = np.random.default_rng(1)
+        x = jax.tree.map(lambda a: a + 0.005 * rng.normal(size=a.shape), x)  # off the optimum
+        f = jax.jit(lambda x: TO.objective(model64, x, prob, config, physics=True))
+        g = jax.jit(jax.grad(lambda x: TO.objective(model64, x, prob, config, physics=True)))(x)
+        for _ in range(4):
+            d = jax.tree.map(lambda a: rng.normal(size=a.shape), x)
+            eps = 1e-5
+            fd = (f(jax.tree.map(lambda a, b: a + eps * b, x, d)) - f(jax.tree.map(lambda a, b: a - eps * b, x, d))) / (2 * eps)
+            an = sum(float(jnp.sum(a * b)) for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(d), strict=True))
+            assert abs(an - float(fd)) < 5e-4 * max(1.0, abs(float(fd))), (an, float(fd))
+
+
+def test_a_clip_that_satisfies_the_physics_stays_put():
+    """Exact keypoints, true contacts, the truth as prior and start: a window of a simulated clip
+    where its physics holds without help stays where it is (joints within 1 cm), its forces
+    carry the body (root residual below 5 % of body weight) and no sole is below the floor."""
+    clip, model = _walk()
+    frames = 40
+    start = _quiet_window(clip, frames)
+    config = get_method("trajopt").make_config(kinematic_iterations=15, physics_iterations=15)
+    prob, q, inputs = _problem(model, clip, start, frames, config)
+
+    @jax.jit
+    def run(prob, q):
+        out = TO.fit(model, prob, q, config)
+        return out, TO.outputs(model, out.q, out.force, prob.mask, prob.fps)
+
+    out, (qd, tau, grf, report) = run(prob, q)
+    kp = lambda x: jax.vmap(lambda y: P.keypoints(model, y, "body25"))(x)  # noqa: E731
+    moved = np.linalg.norm(np.asarray(kp(out.q) - kp(q)), axis=-1)
+    assert moved.mean() < 0.01, moved.mean()
+    assert float(report["residual_mean_bw"]) < 0.05, report
+    assert float(report["penetration_max_m"]) < 0.005, report
+    W = model.total_mass * 9.81
+    net = np.asarray(grf).sum(1)[:, 2] / W
+    assert 0.8 < net[2:-2].mean() < 1.2  # walking: the feet carry about one body weight on average
+    for k in ("objective_initial", "objective_final", "grad_norm", "iterations"):
+        assert np.isfinite(float(out.diagnostics[k]))
+    assert float(out.diagnostics["objective_final"]) <= float(out.diagnostics["objective_physics_initial"])
+
+
+def test_window_plan_and_weights():
+    """Windows cover the clip, the last ends at its end, and the cross-fade weights sum to one
+    with linear ramps over the overlaps."""
+    assert TO.window_starts(100, 0, 10) == (0,)
+    assert TO.window_starts(100, 120, 10) == (0,)
+    starts = TO.window_starts(100, 40, 10)
+    assert starts == (0, 30, 60)
+    w = TO.window_weights(100, starts, 40, 10)
+    np.testing.assert_allclose(w.sum(0), 1.0)
+    assert np.all(w[0, :30] == 1.0) and np.all(w[0, 40:] == 0.0)
+    assert np.all(np.diff(w[1, 30:41]) >= 0)  # ramps up over the overlap
+    with pytest.raises(ValueError, match="overlap"):
+        TO.window_starts(100, 40, 40)
+
+
+@pytest.mark.slow
+def test_stitched_windows_equal_the_whole_clip_without_a_seam():
+    """A clip fitted in overlapping windows agrees with the same clip fitted whole (joints within
+    2 cm on average), and the stitch adds no jump: the largest joint acceleration of the stitched
+    result is within 1.5x that of the whole-clip result."""
+    clip, model = _walk()
+    frames = 96
+    config = get_method("trajopt").make_config(kinematic_iterations=30, physics_iterations=30)
+    prob, q, _ = _problem(model, clip, 0, frames, config)
+    q0 = q.at[:, 7:].add(0.05)  # start off the truth
+
+    run = jax.jit(lambda prob, q0, config: TO.fit_clip(model, prob, q0, config))
+    whole = run(prob, q0, config)
+    stitched = run(prob, q0, config.replace(window=56, overlap=16))
+    kp = lambda x: np.asarray(jax.vmap(lambda y: P.keypoints(model, y, "body25"))(x))  # noqa: E731
+    a, b = kp(whole.q), kp(stitched.q)
+    assert np.linalg.norm(a - b, axis=-1).mean() < 0.02
+    acc = lambda k: np.linalg.norm(np.diff(k, 2, axis=0), axis=-1).max()  # noqa: E731
+    assert acc(b) < 1.5 * acc(a) + 1e-3
