@@ -1,0 +1,80 @@
+"""Seconds per clip of ``trajopt`` at batch 1 and batch B, with the share of each stage.
+
+    .venv/bin/python experiments/bench_trajopt.py                     # 300-frame clips, batch 1 and 64
+    .venv/bin/python experiments/bench_trajopt.py --frames 120 --batches 1 8   # a quick run
+
+Clips are the held-out archive's (``data/heldout``; made by ``experiments/evaluate_default.py``
+if missing), cropped or edge-padded to ``--frames``. For each batch size: the compile time
+(first call, reported separately), then the steady time of ``jit(vmap(reconstruct))`` per clip,
+and the same with each later stage's iterations set to zero, so that the stages' shares follow
+by difference (stage 0 + 1: the kinematic fit; stage 2: physics; the rest: TPNet, contacts,
+outputs). Times are wall-clock on this machine (see docs/performance.md for the record).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import numpy as np
+
+from jmocap.data.archive import Archive
+from jmocap.inputs import ClipInputs
+from jmocap.methods import get_method
+from jmocap.pipeline import subject_model
+from jmocap.weights import default_config_fields, default_params
+
+
+def _stack(trees):
+    return jax.tree.map(lambda *xs: np.stack(xs), *trees)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--archive", default="data/heldout")
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--batches", type=int, nargs="+", default=[1, 64])
+    ap.add_argument("--repeats", type=int, default=1)
+    args = ap.parse_args()
+
+    arch = Archive(args.archive)
+    names = arch.names()
+    params, _ = default_params()
+    base = get_method("trajopt").make_config(default_config_fields())
+    variants = {
+        "full": base,
+        "no physics": base.replace(physics_iterations=0),
+        "no fit": base.replace(physics_iterations=0, kinematic_iterations=0),
+    }
+    fn = jax.jit(jax.vmap(get_method("trajopt").reconstruct, in_axes=(None, 0, 0, None)))
+    print(f"trajopt, {args.frames}-frame clips, {jax.device_count()} device(s): {jax.devices()[0].device_kind}")
+    print("| batch | compile s | s / clip | kinematic fit | physics | rest |")
+    print("|---|---|---|---|---|---|")
+    for B in args.batches:
+        clips = [arch.load(names[i % len(names)]) for i in range(B)]
+        clips = [c.slice(0, min(args.frames, c.num_frames)) for c in clips]
+        inputs = _stack([ClipInputs.from_clip(c, length=args.frames) for c in clips])
+        models = _stack([subject_model(c) for c in clips])
+        per = {}
+        compile_s = None
+        for name, cfg in variants.items():
+            t = time.perf_counter()
+            jax.block_until_ready(fn(params, models, inputs, cfg).q)
+            first = time.perf_counter() - t
+            if compile_s is None:
+                compile_s = first
+            runs = []
+            for _ in range(args.repeats):
+                t = time.perf_counter()
+                jax.block_until_ready(fn(params, models, inputs, cfg).q)
+                runs.append(time.perf_counter() - t)
+            per[name] = min(runs) / B
+        full, nophys, nofit = per["full"], per["no physics"], per["no fit"]
+        share = lambda x: f"{100 * x / full:.0f} %"  # noqa: E731
+        print(f"| {B} | {compile_s - full * B:.0f} | {full:.2f} | {share(nophys - nofit)} | {share(full - nophys)} "
+              f"| {share(nofit)} |")
+
+
+if __name__ == "__main__":
+    main()
