@@ -61,7 +61,7 @@ from jmocap.constants import FRICTION_MU, GRAVITY
 from jmocap.inputs import ClipInputs
 from jmocap.layouts import get_layout
 from jmocap.methods import stages as S
-from jmocap.methods.base import Method, register, static
+from jmocap.methods.base import Method, Variant, register, register_variant, static
 from jmocap.methods.kinematic import KinematicConfig
 from jmocap.methods.kinematic import init_params as init_tpnet_params
 from jmocap.model import Model
@@ -83,7 +83,7 @@ class TrajOptConfig(KinematicConfig):
     memory: int = static(10)  # L-BFGS history
     window: int = static(0)  # frames per window (0: the whole clip is one window)
     overlap: int = static(32)  # frames shared by consecutive windows (cross-faded)
-    contact_source: str = static("tpnet")  # "mlp" (Rempe's estimator) or "tpnet"
+    contact_source: str = static("mlp")  # "mlp" (Rempe's estimator) or "tpnet" (TPNet's head)
     nnls_iterations: int = static(60)  # FISTA iterations of the per-frame force problem
     # --- 2D evidence ---
     w_reproj: float = 1.0
@@ -639,10 +639,17 @@ def _blend_q(qs: Array, w: Array) -> Array:
     return q.at[:, 3:7].set(quat_normalize(q[:, 3:7]))
 
 
+@jax.custom_batching.custom_vmap
 def fit_clip(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fit:
     """:func:`fit` over the whole clip, or over overlapping windows of ``config.window`` frames
-    (``jax.vmap``-ed: the windows are a batch) cross-faded over their ``config.overlap`` shared
-    frames. A clip no longer than a window is one window."""
+    cross-faded over their ``config.overlap`` shared frames. A clip no longer than a window is
+    one window.
+
+    Batched (``jax.vmap``, e.g. over the clips of a bucket), the clips' optimisations run one
+    after another in one program (``lax.map``, :func:`_fit_clips`), as do the windows: each
+    clip's line searches stop when it converges instead of waiting for the slowest lane, and
+    XLA's CPU backend crashed (a segfault in its runtime, jax 0.10.2) running the vmapped
+    optimiser. Differentiate :func:`fit` (not vmapped over clips) to take gradients."""
     T = q_init.shape[0]
     W, O = config.window, config.overlap
     starts = window_starts(T, W, O)
@@ -660,7 +667,7 @@ def fit_clip(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) 
                           intrinsics=jnp.broadcast_to(prob.intrinsics, (len(starts), *prob.intrinsics.shape)),
                           extrinsics=jnp.broadcast_to(prob.extrinsics, (len(starts), *prob.extrinsics.shape)),
                           fps=jnp.broadcast_to(prob.fps, (len(starts),)))
-    fits = jax.vmap(lambda p, q0: fit(model, p, q0, config))(probs, q_init[idx])
+    fits = jax.lax.map(lambda a: fit(model, a[0], a[1], config), (probs, q_init[idx]))
     wnp = window_weights(T, starts, W, O)
     # only a window's real frames count; renormalise where the weights no longer sum to one
     wm = jnp.asarray(wnp, q_init.dtype) * jnp.zeros((len(starts), T), q_init.dtype).at[
@@ -679,6 +686,14 @@ def fit_clip(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) 
     diagnostics = {k: jnp.sum(share * v) for k, v in fits.diagnostics.items()}
     diagnostics["iterations"] = jnp.sum(fits.diagnostics["iterations"])
     return Fit(q, force * prob.mask[:, None, None], contacts, diagnostics, q_kin)
+
+
+@fit_clip.def_vmap
+def _fit_clips(axis_size, in_batched, model, prob, q_init, config):
+    args = jax.tree.map(lambda a, b: a if b else jnp.broadcast_to(a, (axis_size, *jnp.shape(a))),
+                        (model, prob, q_init, config), (*in_batched,))
+    out = jax.lax.map(lambda a: fit_clip(*a), args)
+    return out, jax.tree.map(lambda _: True, out)
 
 
 def reconstruct(params: dict, model: Model, inputs: ClipInputs, config: TrajOptConfig = TrajOptConfig()) -> Motion:
@@ -724,5 +739,8 @@ METHOD = register(
         causal=False,
     )
 )
+
+register_variant(Variant("trajopt_tpnet_contacts", "trajopt", {"contact_source": "tpnet"},
+                         "trajopt with TPNet's contact head instead of Rempe et al.'s estimator (ablation)"))
 
 __all__ = ["METHOD", "TrajOptConfig", "Trajectory", "fit", "frame_velocities", "reconstruct"]
