@@ -39,6 +39,7 @@ def test_every_written_field_reads_back(tmp_path):
               "target_q": (model.nq,), "keypoints3d": (25, 3)}
     res = {k: rng.normal(size=(T, *shapes[k])).astype(np.float32) for k in MOTION_FIELDS}
     res["certified"] = rng.random(T) > 0.1  # the optional per-frame QP certificates
+    res["diagnostics"] = {"objective_final": 1.25, "iterations": 200.0}  # an optimiser's report
     identity = {"config": json.dumps({"mu": 0.8}), "params_sha256": "ab" * 32, "model_sha256": "cd" * 32,
                 "version": "9.9"}
     arrays = result_arrays(clip, res, method="physcap", height_m=1.62, mass_kg=model.total_mass,
@@ -51,6 +52,7 @@ def test_every_written_field_reads_back(tmp_path):
     for k in (*MOTION_FIELDS, "certified"):
         np.testing.assert_array_equal(r[k], res[k])
     np.testing.assert_array_equal(r["keypoints2d"], clip.keypoints)
+    assert r["diagnostics"] == res["diagnostics"]
     assert r["format"] == RESULT_FORMAT and r["name"] == "walk/take1" and r["source"] == "in/walk.npz"
     assert r["method"] == "physcap" and r["forces_estimated"] is True and r["layout"] == "body25"
     assert (r["fps"], r["height_m"]) == (25.0, 1.62) and r["mass_kg"] == pytest.approx(55.0)
@@ -96,6 +98,8 @@ def test_load_result_rejects_bad_files(tmp_path):
         "frames.npz": ({"q": q, "fps": np.array(30.0), "grf": np.zeros((4, 4, 3))}, r"'grf' has 4 frames, 'q' has 5"),
         "shape.npz": ({"q": q, "fps": np.array(30.0), "grf": np.zeros((5, 3))}, r"'grf' has shape \(5, 3\)"),
         "fps.npz": ({"q": q, "fps": np.array(-1.0)}, r"'fps' must be positive"),
+        "diag.npz": ({"q": q, "fps": np.array(30.0), "diagnostics": np.array('["x"]')},
+                     r"'diagnostics' is not a JSON object of numbers"),
     }
     for name, (arrays, match) in cases.items():
         np.savez(tmp_path / name, **arrays)

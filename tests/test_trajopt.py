@@ -201,3 +201,15 @@ def test_stitched_windows_equal_the_whole_clip_without_a_seam():
     assert np.linalg.norm(a - b, axis=-1).mean() < 0.02
     acc = lambda k: np.linalg.norm(np.diff(k, 2, axis=0), axis=-1).max()  # noqa: E731
     assert acc(b) < 1.5 * acc(a) + 1e-3
+
+
+def test_engine_gives_trajopt_whole_clips():
+    """The batch engine runs a non-causal method on whole clips padded to its bucket (one chunk,
+    no history), a causal one in chunks."""
+    from jmocap.pipeline import Reconstructor
+
+    clip, _ = _walk()  # 120 frames
+    r = Reconstructor({}, get_method("trajopt").make_config(), method="trajopt", chunk=48, bucket=64)
+    assert r.plan(clip) == (128,) and r.history == 0
+    p = Reconstructor({}, get_method("pip").make_config(), method="pip", chunk=48, bucket=16)
+    assert p.plan(clip) == (48, 48, 32)
