@@ -36,17 +36,17 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 64])
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--no-stages", action="store_true", help="time the full method only (one compile per batch)")
     args = ap.parse_args()
 
     arch = Archive(args.archive)
     names = arch.names()
     params, _ = default_params()
     base = get_method("trajopt").make_config(default_config_fields())
-    variants = {
-        "full": base,
-        "no physics": base.replace(physics_iterations=0),
-        "no fit": base.replace(physics_iterations=0, kinematic_iterations=0),
-    }
+    variants = {"full": base}
+    if not args.no_stages:
+        variants.update({"no physics": base.replace(physics_iterations=0),
+                         "no fit": base.replace(physics_iterations=0, kinematic_iterations=0)})
     fn = jax.jit(jax.vmap(get_method("trajopt").reconstruct, in_axes=(None, 0, 0, None)))
     print(f"trajopt, {args.frames}-frame clips, {jax.device_count()} device(s): {jax.devices()[0].device_kind}")
     print("| batch | compile s | s / clip | kinematic fit | physics | rest |")
@@ -70,7 +70,11 @@ def main() -> None:
                 jax.block_until_ready(fn(params, models, inputs, cfg).q)
                 runs.append(time.perf_counter() - t)
             per[name] = min(runs) / B
-        full, nophys, nofit = per["full"], per["no physics"], per["no fit"]
+        full = per["full"]
+        if args.no_stages:
+            print(f"| {B} | {compile_s - full * B:.0f} | {full:.2f} | | | |")
+            continue
+        nophys, nofit = per["no physics"], per["no fit"]
         share = lambda x: f"{100 * x / full:.0f} %"  # noqa: E731
         print(f"| {B} | {compile_s - full * B:.0f} | {full:.2f} | {share(nophys - nofit)} | {share(full - nophys)} "
               f"| {share(nofit)} |")
