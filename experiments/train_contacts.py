@@ -1,0 +1,408 @@
+"""Train Rempe et al.'s foot-contact MLP (2020, Sec. 3.2 and Appendix A.2) on synthetic clips.
+
+    .venv/bin/python experiments/train_contacts.py [--ship]
+
+1. Generates the training archive if it is missing or short (resumable, deterministic):
+   ``jmocap data synth --out data/contacts_train --clips 200 --seed 7 --physics
+   --frames-per-clip 60:150`` -- clips tracked in MuJoCo simulation, whose ``gt_contacts`` are
+   the *force* rule (vertical force > 1 % body weight), like the held-out archive
+   ``data/heldout`` (seed 123, which this script refuses: never train or tune on it). Kinematic
+   clips (no ``--physics``) label contacts by Rempe's geometric rule instead, which disagrees
+   with the force rule on 17-43 % of the contact-point frames (measured on four clips of seed 7).
+   Short clips: one subject and one camera per clip, so more of both per generated frame; 100
+   clips of 150-300 frames (the same number of frames) gave a worse model on validation
+   (docs/method.md, "Contact estimation"). An archive made with other settings is refused.
+2. Splits the clips (by clip) into training and validation (``--val-fraction``) and computes the
+   features of every real target frame (:func:`jmocap.methods.contact_estimation
+   .contact_features`) of each clip and of its horizontal mirror image (x mirrored, left/right
+   joints and left/right contact labels swapped), with the labels of frames ``t-2 .. t+2``
+   (targets near a clip's ends do not train the frames outside it).
+3. Trains :class:`jmocap.nets.ContactMLP` with binary cross-entropy, Adam (``--lr`` 3e-4; the
+   paper's 1e-4 and 1e-3 gave the same validation F1 within 0.5 points) with L2 weight decay
+   1e-4 added to the gradient (PyTorch's ``Adam(weight_decay=...)``, as in the paper), batch
+   256; augmentation per sample: Gaussian noise sigma 0.005 on the normalised positions (A.2),
+   random keypoint dropout (each joint-frame of the window dropped with a probability drawn
+   uniformly in [0, 0.1]) and a random global scale in [0.9, 1.1]. Early
+   stopping on the validation loss (patience ``--patience`` epochs); the best epoch's weights
+   are kept. BatchNorm: batch statistics in training, the running averages (momentum 0.9) for
+   validation and inference.
+4. Resumable: ``RUN/checkpoint.msgpack`` after every epoch (weights, running statistics,
+   optimiser state, the best weights so far, epoch, early-stopping state); ``RUN/log.jsonl``
+   one line per epoch. Re-running continues; a finished run only re-writes its outputs.
+5. Writes ``RUN/contact_mlp.msgpack`` (best weights, float32) and ``RUN/summary.json`` (the
+   training split's per-contact label rates and majority labels, the 2D-velocity baseline's
+   threshold fitted on the training split, validation metrics, timings); ``--ship`` copies the
+   weights as float16 to ``src/jmocap/assets/contact_mlp.msgpack`` and the summary to
+   ``src/jmocap/assets/contact_mlp.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+HELDOUT_SEED = 123
+BATCH = 256
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def ensure_archive(path: Path, clips: int, seed: int, frames: str) -> float:
+    """Generate (or resume) the training archive; returns the seconds spent."""
+    from jmocap.cli import main as jmocap
+
+    manifest = path / "manifest.jsonl"
+    meta = path / "archive.json"
+    if meta.exists():  # an archive made with other settings is not resumed (nor silently used)
+        got = json.loads(meta.read_text())
+        cfg = got.get("config", {})
+        lo, hi = (int(x) for x in frames.split(":")) if ":" in frames else (int(frames),) * 2
+        want_frames = [lo, hi] if ":" in frames else lo
+        if got.get("seed") != seed or not cfg.get("physics") or cfg.get("frames") != want_frames:
+            sys.exit(f"{path} was made with seed {got.get('seed')}, frames {cfg.get('frames')}, physics "
+                     f"{cfg.get('physics')}; this run asks for seed {seed}, frames {frames}, physics: "
+                     f"use another --data folder")
+    have = sum(1 for line in manifest.read_text().splitlines() if line.strip()) if manifest.exists() else 0
+    if have >= clips:
+        return 0.0
+    cmd = ["data", "synth", "--out", str(path), "--clips", str(clips), "--seed", str(seed), "--physics",
+           "--frames-per-clip", frames, "--workers", "1", "--quiet"]
+    log("+ jmocap " + " ".join(cmd))
+    t0 = time.time()
+    if jmocap(cmd) != 0:
+        sys.exit(f"could not generate the training archive {path}")
+    return time.time() - t0
+
+
+def load_clips(path: Path, clips: int):
+    from jmocap.data.archive import Archive
+
+    with Archive(path) as a:
+        out = [a.load(n) for n in a.names()[:clips]]
+    bad = [c.name for c in out if c.gt_contacts is None or c.meta.get("contact_rule", {}).get("rule") != "force"]
+    if bad:
+        sys.exit(f"{path}: clips without force contact labels: {bad[:5]}")
+    return out
+
+
+def split(clips, val_fraction: float, seed: int):
+    rng = np.random.default_rng([seed, 1])
+    order = rng.permutation(len(clips))
+    n_val = max(1, int(round(val_fraction * len(clips))))
+    val = sorted(order[:n_val].tolist())
+    train = sorted(order[n_val:].tolist())
+    return [clips[i] for i in train], [clips[i] for i in val]
+
+
+def _bucket(T: int) -> int:
+    return int(-(-T // 64) * 64)
+
+
+def window_labels(labels: np.ndarray, T: int):
+    """Labels (T, 5, 4) of frames t-2 .. t+2 per target t, and their mask (T, 5)."""
+    from jmocap.methods.contact_estimation import HALF_OUT, OUT_FRAMES
+
+    idx = np.arange(T)[:, None] + np.arange(OUT_FRAMES)[None, :] - HALF_OUT
+    ok = (idx >= 0) & (idx < T)
+    return labels[np.clip(idx, 0, T - 1)].astype(np.float32), ok.astype(np.float32)
+
+
+def clip_arrays(clips, flip: bool = True):
+    """Features (N, 351), window labels (N, 5, 4) and label masks (N, 5) of every real target
+    frame of the clips (and of their mirror images)."""
+    import jax
+
+    from jmocap.methods import contact_estimation as ce
+
+    feats = jax.jit(ce.contact_features, static_argnums=3)
+    flipk = jax.jit(ce.flip_keypoints, static_argnums=2)
+    X, Y, M = [], [], []
+    for c in clips:
+        T = c.num_frames
+        L = _bucket(T)
+        kp = np.zeros((L, *c.keypoints.shape[1:]), np.float32)
+        kp[:T] = c.keypoints
+        mask = np.arange(L) < T
+        size = np.asarray(c.image_size, np.float32)
+        y, m = window_labels(np.asarray(c.gt_contacts), T)
+        X.append(np.asarray(feats(kp, size, mask, c.layout))[:T])
+        Y.append(y)
+        M.append(m)
+        if flip:
+            X.append(np.asarray(feats(flipk(kp, size, c.layout), size, mask, c.layout))[:T])
+            Y.append(np.asarray(ce.flip_contacts(y)))
+            M.append(m)
+    return np.concatenate(X), np.concatenate(Y), np.concatenate(M)
+
+
+# ---------------------------------------------------------------------------------------
+# training
+# ---------------------------------------------------------------------------------------
+
+
+def make_steps(lr: float, weight_decay: float, noise: float, drop_max: float, scale_jitter: float):
+    import jax
+    import jax.numpy as jnp
+    import optax
+
+    from jmocap.methods import contact_estimation as ce
+
+    tx = optax.chain(optax.add_decayed_weights(weight_decay), optax.adam(lr))
+
+    def augment(x, key):
+        k1, k2, k3, k4 = jax.random.split(key, 4)
+        B = x.shape[0]
+        f = x.reshape(B, ce.WINDOW, ce.NUM_JOINTS, 3)
+        vis = f[..., 2] > 0
+        scale = jax.random.uniform(k4, (B, 1, 1, 1), minval=1 - scale_jitter, maxval=1 + scale_jitter)
+        xy = f[..., :2] * scale + noise * jax.random.normal(k1, (*f.shape[:-1], 2))
+        p = jax.random.uniform(k2, (B, 1, 1)) * drop_max
+        keep = vis & (jax.random.uniform(k3, vis.shape) >= p)
+        out = jnp.concatenate([xy, f[..., 2:]], -1) * keep[..., None]
+        return out.reshape(x.shape)
+
+    def bce(logits, y, m):
+        per = optax.sigmoid_binary_cross_entropy(logits, y) * m[..., None]
+        return jnp.sum(per) / jnp.maximum(4.0 * jnp.sum(m), 1.0)
+
+    def loss_fn(p, bs, x, y, m, key):
+        ka, kd = jax.random.split(key)
+        logits, upd = ce.window_logits({"params": p, "batch_stats": bs}, augment(x, ka), train=True,
+                                       rngs={"dropout": kd})
+        return bce(logits, y, m), upd["batch_stats"]
+
+    @jax.jit
+    def train_step(p, bs, opt, x, y, m, key):
+        (loss, bs), g = jax.value_and_grad(loss_fn, has_aux=True)(p, bs, x, y, m, key)
+        upd, opt = tx.update(g, opt, p)
+        return optax.apply_updates(p, upd), bs, opt, loss
+
+    @jax.jit
+    def eval_batch(variables, x, y, m):
+        logits = ce.window_logits(variables, x)
+        prob = jax.nn.sigmoid(logits)
+        per = optax.sigmoid_binary_cross_entropy(logits, y) * m[..., None]
+        pr, g = prob[:, ce.HALF_OUT] > 0.5, y[:, ce.HALF_OUT] > 0.5  # centre frame
+        tp = jnp.sum(pr & g)
+        fp = jnp.sum(pr & ~g)
+        fn = jnp.sum(~pr & g)
+        return jnp.sum(per), 4.0 * jnp.sum(m), jnp.array([tp, fp, fn])
+
+    return tx, train_step, eval_batch
+
+
+def evaluate_arrays(eval_batch, variables, X, Y, M):
+    loss, n, counts = 0.0, 0.0, np.zeros(3)
+    for i in range(0, len(X), 2048):
+        a, b, c = eval_batch(variables, X[i:i + 2048], Y[i:i + 2048], M[i:i + 2048])
+        loss, n, counts = loss + float(a), n + float(b), counts + np.asarray(c, float)
+    tp, fp, fn = counts
+    return loss / max(n, 1.0), 100.0 * 2 * tp / max(2 * tp + fp + fn, 1.0)
+
+
+def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
+    import jax
+    from flax import serialization
+
+    from jmocap.io import atomic_write
+    from jmocap.methods import contact_estimation as ce
+
+    tx, train_step, eval_batch = make_steps(args.lr, args.weight_decay, args.noise, args.drop_max,
+                                            args.scale_jitter)
+    variables = ce.init_contact_params(jax.random.PRNGKey(args.seed), tuple(args.widths))
+    state = {
+        "params": variables["params"], "batch_stats": variables["batch_stats"],
+        "opt": tx.init(variables["params"]), "epoch": 0, "best_val": float("inf"), "best_epoch": -1,
+        "bad_epochs": 0, "best": variables, "done": False,
+    }
+    ckpt = run / "checkpoint.msgpack"
+    if ckpt.exists():
+        state = serialization.from_bytes(state, ckpt.read_bytes())
+        state["done"] = bool(state["done"])
+        log(f"resumed {ckpt} at epoch {int(state['epoch'])} (best val {float(state['best_val']):.4f})")
+    key = jax.random.PRNGKey(args.seed + 1)
+    n = len(Xtr)
+    logf = open(run / "log.jsonl", "a")
+    while not state["done"] and int(state["epoch"]) < args.max_epochs:
+        ep = int(state["epoch"])
+        t0 = time.time()
+        order = np.random.default_rng([args.seed, ep]).permutation(n)
+        ek = jax.random.fold_in(key, ep)
+        p, bs, opt = state["params"], state["batch_stats"], state["opt"]
+        losses = []
+        for s, i in enumerate(range(0, n - BATCH + 1, BATCH)):
+            idx = order[i:i + BATCH]
+            p, bs, opt, loss = train_step(p, bs, opt, Xtr[idx], Ytr[idx], Mtr[idx], jax.random.fold_in(ek, s))
+            losses.append(loss)
+        train_loss = float(np.mean(jax.device_get(losses)))
+        cur = {"params": p, "batch_stats": bs}
+        val_loss, val_f1 = evaluate_arrays(eval_batch, cur, Xva, Yva, Mva)
+        improved = val_loss < float(state["best_val"]) - 1e-5
+        state.update(params=p, batch_stats=bs, opt=opt, epoch=ep + 1)
+        if improved:
+            state.update(best_val=val_loss, best_epoch=ep, bad_epochs=0, best=cur)
+        else:
+            state["bad_epochs"] = int(state["bad_epochs"]) + 1
+        state["done"] = int(state["bad_epochs"]) >= args.patience
+        rec = {"epoch": ep, "train_loss": train_loss, "val_loss": val_loss, "val_f1_centre": val_f1,
+               "best_epoch": int(state["best_epoch"]), "seconds": round(time.time() - t0, 2)}
+        logf.write(json.dumps(rec) + "\n")
+        logf.flush()
+        log(f"epoch {ep}: train {train_loss:.4f} val {val_loss:.4f} val F1 {val_f1:.1f} "
+            f"({rec['seconds']} s){' *' if improved else ''}")
+        atomic_write(ckpt, serialization.to_bytes(state))
+    logf.close()
+    return jax.device_get(state["best"]), int(state["best_epoch"]), int(state["epoch"])
+
+
+# ---------------------------------------------------------------------------------------
+# summary: baselines' training-set quantities, validation metrics
+# ---------------------------------------------------------------------------------------
+
+
+def _f1(pred: np.ndarray, gt: np.ndarray) -> float:
+    tp = np.sum(pred & gt)
+    return 100.0 * 2 * tp / max(2 * tp + np.sum(pred & ~gt) + np.sum(~pred & gt), 1)
+
+
+def fit_velocity_threshold(clips) -> float:
+    """The 2D-velocity baseline's threshold (body sizes per frame) with the best pooled F1 on
+    the training clips."""
+    import jax
+
+    from jmocap.methods import contact_estimation as ce
+
+    speed_fn = jax.jit(ce.foot_speed, static_argnums=3)
+    speeds, gts = [], []
+    for c in clips:
+        T = c.num_frames
+        L = _bucket(T)
+        kp = np.zeros((L, *c.keypoints.shape[1:]), np.float32)
+        kp[:T] = c.keypoints
+        speeds.append(np.asarray(speed_fn(kp, np.asarray(c.image_size, np.float32), np.arange(L) < T,
+                                          c.layout))[:T])
+        gts.append(np.asarray(c.gt_contacts) > 0.5)
+    sp, gt = np.concatenate(speeds), np.concatenate(gts)
+    grid = np.geomspace(1e-3, 0.3, 120)
+    f1 = [_f1(sp < th, gt) for th in grid]
+    return float(grid[int(np.argmax(f1))])
+
+
+def voted_f1(variables, clips) -> dict:
+    import jax
+
+    from jmocap.inputs import ClipInputs
+    from jmocap.methods import contact_estimation as ce
+
+    fn = jax.jit(ce.estimate_contacts, static_argnums=2)
+    preds, gts = [], []
+    for c in clips:
+        inp = ClipInputs.from_clip(c, _bucket(c.num_frames))
+        preds.append(np.asarray(fn(variables, inp, c.layout))[: c.num_frames] > 0.5)
+        gts.append(np.asarray(c.gt_contacts) > 0.5)
+    pr, gt = np.concatenate(preds), np.concatenate(gts)
+    return {"f1": round(_f1(pr, gt), 2), "accuracy": round(100.0 * float(np.mean(pr == gt)), 2)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default="data/contacts_train", help="training archive folder")
+    ap.add_argument("--clips", type=int, default=200)
+    ap.add_argument("--seed", type=int, default=7, help="archive and training seed (never 123)")
+    ap.add_argument("--frames-per-clip", default="60:150",
+                    help="clip lengths (short clips: more subjects and cameras per generated frame)")
+    ap.add_argument("--run", default="runs/contacts", help="checkpoint, log and outputs")
+    ap.add_argument("--val-fraction", type=float, default=0.15)
+    ap.add_argument("--widths", type=int, nargs="+", default=[512, 256, 128, 32])
+    ap.add_argument("--lr", type=float, default=3e-4)
+    ap.add_argument("--weight-decay", type=float, default=1e-4)
+    ap.add_argument("--noise", type=float, default=0.005)
+    ap.add_argument("--drop-max", type=float, default=0.1)
+    ap.add_argument("--scale-jitter", type=float, default=0.1)
+    ap.add_argument("--max-epochs", type=int, default=60)
+    ap.add_argument("--patience", type=int, default=6)
+    ap.add_argument("--ship", action="store_true", help="copy the weights into the package (float16)")
+    args = ap.parse_args(argv)
+    if args.seed == HELDOUT_SEED:
+        sys.exit(f"seed {HELDOUT_SEED} is the held-out evaluation archive's: train on another seed")
+    data, run = ROOT / args.data, ROOT / args.run
+    if data.resolve() == (ROOT / "data/heldout").resolve():
+        sys.exit("data/heldout is the held-out evaluation archive: never train on it")
+    run.mkdir(parents=True, exist_ok=True)
+    t_start = time.time()
+    gen_s = ensure_archive(data, args.clips, args.seed, args.frames_per_clip)
+    clips = load_clips(data, args.clips)
+    tr, va = split(clips, args.val_fraction, args.seed)
+    log(f"{len(clips)} clips ({sum(c.num_frames for c in clips)} frames): {len(tr)} train, {len(va)} validation")
+    t0 = time.time()
+    Xtr, Ytr, Mtr = clip_arrays(tr, flip=True)
+    Xva, Yva, Mva = clip_arrays(va, flip=False)
+    feat_s = time.time() - t0
+    log(f"features: {len(Xtr)} training windows (with mirrored), {len(Xva)} validation ({feat_s:.0f} s)")
+    t0 = time.time()
+    best, best_epoch, epochs = train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run)
+    train_s = time.time() - t0
+
+    from jmocap.methods import contact_estimation as ce
+    from jmocap.weights import load_params, save_params
+
+    save_params(run / "contact_mlp.msgpack", best)
+    gt_tr = np.concatenate([np.asarray(c.gt_contacts) for c in tr]) > 0.5
+    rate = gt_tr.mean(0)
+    half = _half(best)
+    summary = {
+        "paper": "Rempe et al. 2020, Sec. 3.2 / Appendix A.2",
+        "command": "python experiments/train_contacts.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "archive": {"path": args.data, "clips": len(clips), "seed": args.seed, "physics": True,
+                    "frames_per_clip": args.frames_per_clip, "frames": int(sum(c.num_frames for c in clips)),
+                    "contact_rule": "force"},
+        "split": {"train_clips": [c.name for c in tr], "val_clips": [c.name for c in va]},
+        "widths": list(ce.mlp_widths(best)),
+        "hyper": {k: getattr(args, k) for k in ("lr", "weight_decay", "noise", "drop_max", "scale_jitter",
+                                                "patience", "max_epochs", "val_fraction")},
+        "best_epoch": best_epoch, "epochs_run": epochs,
+        "train_contact_rate": [round(float(r), 4) for r in rate],
+        "train_majority": [int(r > 0.5) for r in rate],
+        "velocity_threshold": fit_velocity_threshold(tr),
+        "val_voted": voted_f1(best, va),
+        "val_voted_float16": voted_f1(half, va),
+        "seconds": {"generate": round(gen_s, 1), "features": round(feat_s, 1), "train": round(train_s, 1),
+                    "total_this_call": round(time.time() - t_start, 1)},
+    }
+    (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    log(f"validation (voted): {summary['val_voted']}  float16: {summary['val_voted_float16']}")
+    if args.ship:
+        asset = ROOT / "src/jmocap/assets/contact_mlp.msgpack"
+        save_params(asset, _half_raw(best))
+        (ROOT / "src/jmocap/assets/contact_mlp.json").write_text(json.dumps(
+            {k: v for k, v in summary.items() if k != "split"}, indent=2) + "\n")
+        back = load_params(asset)
+        assert all(np.asarray(x).dtype == np.float32 for x in __import__("jax").tree.leaves(back))
+        log(f"shipped {asset} ({asset.stat().st_size / 1e6:.2f} MB)")
+    log(f"done in {time.time() - t_start:.0f} s this call")
+    return 0
+
+
+def _half_raw(tree):
+    import jax
+
+    return jax.tree.map(lambda x: np.asarray(x, np.float16), tree)
+
+
+def _half(tree):
+    """The float16 round trip the shipped weights go through, back in float32."""
+    import jax
+
+    return jax.tree.map(lambda x: np.asarray(np.asarray(x, np.float16), np.float32), tree)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,245 @@
+"""Tests of jmocap.methods.contact_estimation (Rempe et al. 2020, Sec. 3.2 / Appendix A.2):
+majority voting on a hand-worked example, the feature normalisation on hand-made poses (root,
+body size, edge and padded-frame replication), invariance to 2D translation and to uniform image
+scaling, the horizontal flip of keypoints, features and labels, jit + vmap over padded clips,
+and the shipped weights on freshly generated synthetic clips against the majority class."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from jmocap.constants import CONTACT_SITES
+from jmocap.inputs import ClipInputs
+from jmocap.layouts import BODY25
+from jmocap.methods import contact_estimation as ce
+
+J = BODY25.num_joints
+# jitted once per shape: far faster than op-by-op dispatch
+features = jax.jit(ce.contact_features, static_argnums=3)
+vote = jax.jit(ce.vote)
+
+
+def _pose(t_shift=(0.0, 0.0)) -> np.ndarray:
+    """A BODY_25 frame (J, 3): lower body at hand-picked pixels, upper body undetected.
+
+    Right leg hip (90, 100) - knee (90, 140) - ankle (90, 180): 40 + 40 = 80 px; left leg
+    (110, 100) - (110, 130) - (110, 160): 30 + 30 = 60 px. So the body size is 80 px."""
+    kp = np.zeros((J, 3), np.float32)
+    pts = {"MidHip": (100, 100), "RHip": (90, 100), "RKnee": (90, 140), "RAnkle": (90, 180),
+           "LHip": (110, 100), "LKnee": (110, 130), "LAnkle": (110, 160),
+           "LBigToe": (120, 165), "LSmallToe": (118, 166), "LHeel": (108, 164),
+           "RBigToe": (80, 185), "RSmallToe": (82, 186), "RHeel": (92, 184)}
+    for name, (x, y) in pts.items():
+        kp[BODY25.index(name)] = (x + t_shift[0], y + t_shift[1], 0.9)
+    return kp
+
+
+def _feat(f, t, slot, joint):
+    """Feature (x, y, c) of window slot ``slot`` of target ``t`` for a joint name."""
+    return np.asarray(f).reshape(-1, ce.WINDOW, ce.NUM_JOINTS, 3)[t, slot, ce.LOWER_BODY.index(joint)]
+
+
+# ---------------------------------------------------------------------------------------
+# voting
+# ---------------------------------------------------------------------------------------
+
+
+def test_vote_hand_worked():
+    # votes[s, k] of contact 0 (target s predicts frame s + k - 2); 0.5 is *not* a vote for contact
+    hi, lo = 0.9, 0.1
+    p = np.zeros((6, 5, 4), np.float32)
+    p[0, :, 0] = [hi, hi, hi, lo, lo]     # frames -2..2: frame 0 yes, 1 no, 2 no
+    p[1, :, 0] = [hi, hi, hi, hi, hi]     # frames -1..3: 0, 1, 2, 3 yes
+    p[2, :, 0] = [0.5] * 5                # frames 0..4: all no (0.5 is not > 0.5)
+    p[3, :, 0] = [hi, hi, hi, hi, hi]     # frames 1..5: 1, 2, 3, 4 yes (5 is padded)
+    p[4, :, 0] = [lo, hi, lo, hi, hi]     # frames 2..6: 2 no, 3 yes, 4 no
+    p[5] = hi                             # a padded target: never votes
+    mask = np.array([1, 1, 1, 1, 1, 0], bool)
+    got = np.asarray(vote(p, mask))
+    # frame 0: s=0,1,2 -> 1,1,0; frame 1: s=0..3 -> 0,1,0,1 (a tie); frame 2: s=0..4 -> 0,1,0,1,0;
+    # frame 3: s=1..4 -> 1,0,1,1; frame 4: s=2..4 -> 0,1,0; frame 5 padded
+    want = np.array([2 / 3, 2 / 4, 2 / 5, 3 / 4, 1 / 3, 0.0])
+    np.testing.assert_allclose(got[:, 0], want, rtol=1e-6)
+    np.testing.assert_array_equal(got[:, 1:], 0.0)
+    # the majority decision: frame 1's tie is "not in contact"
+    np.testing.assert_array_equal(got[:, 0] > 0.5, [True, False, False, True, False, False])
+
+
+def test_vote_all_agree_is_one():
+    p = np.full((7, 5, 4), 0.8, np.float32)
+    np.testing.assert_array_equal(np.asarray(vote(p, np.ones(7, bool))), 1.0)
+
+
+# ---------------------------------------------------------------------------------------
+# features
+# ---------------------------------------------------------------------------------------
+
+
+def test_features_hand_worked_pose():
+    kp = np.stack([_pose()] * 3)
+    f = features(kp, np.array([640.0, 480.0]), np.ones(3, bool))
+    assert f.shape == (3, 9 * 13 * 3)
+    # root MidHip (100, 100), body size 80 px (the right leg, the longer one)
+    np.testing.assert_allclose(_feat(f, 1, 4, "LAnkle"), [10 / 80, 60 / 80, 0.9], rtol=1e-6)
+    np.testing.assert_allclose(_feat(f, 1, 0, "RBigToe"), [-20 / 80, 85 / 80, 0.9], rtol=1e-6)
+    np.testing.assert_allclose(_feat(f, 1, 4, "MidHip"), [0.0, 0.0, 0.9], atol=1e-7)
+
+
+def test_features_root_fallback_and_undetected_joints():
+    kp = np.stack([_pose()] * 3)
+    kp[:, BODY25.index("MidHip")] = 0.0  # undetected everywhere: the root is the mean of the hips
+    kp[:, BODY25.index("LHip"), :2] = (112, 104)  # hips (90, 100), (112, 104): mean (101, 102)
+    kp[1, BODY25.index("RHeel")] = 0.0  # undetected in the target frame
+    f = features(kp, np.array([640.0, 480.0]), np.ones(3, bool))
+    # left leg now 2 * ~30 px; the right leg (80 px) stays the longer
+    np.testing.assert_allclose(_feat(f, 1, 4, "RAnkle"), [(90 - 101) / 80, (180 - 102) / 80, 0.9], rtol=1e-6)
+    np.testing.assert_array_equal(_feat(f, 1, 4, "MidHip"), 0.0)
+    np.testing.assert_array_equal(_feat(f, 1, 4, "RHeel"), 0.0)
+    np.testing.assert_allclose(_feat(f, 1, 3, "RHeel"), [(92 - 101) / 80, (184 - 102) / 80, 0.9], rtol=1e-6)
+
+
+def test_window_frames_replicate_edges_and_padded_frames():
+    w = np.asarray(ce.window_frames(np.array([1, 1, 1, 1, 0, 0], bool)))
+    np.testing.assert_array_equal(w[0], [0, 0, 0, 0, 0, 1, 2, 3, 3])
+    np.testing.assert_array_equal(w[3], [0, 0, 1, 2, 3, 3, 3, 3, 3])
+    np.testing.assert_array_equal(w[5], [1, 2, 3, 3, 3, 3, 3, 3, 3])
+    # an interior hole: frame 2 is as near to 1 as to 3 (the earlier wins), frame 3 to 4
+    w = np.asarray(ce.window_frames(np.array([1, 1, 0, 0, 1, 1], bool)))
+    np.testing.assert_array_equal(w[2], [0, 0, 0, 1, 1, 4, 4, 5, 5])
+
+
+def test_features_replicate_frames_at_edges_and_padding():
+    # the person walks 10 px per frame to the right; frames 4, 5 are padding (garbage keypoints)
+    kp = np.stack([_pose((10.0 * t, 0.0)) for t in range(6)])
+    kp[4:, :, :2] = 1e4
+    mask = np.array([1, 1, 1, 1, 0, 0], bool)
+    f = features(kp, np.array([640.0, 480.0]), mask)
+    x0 = [_feat(f, 0, s, "MidHip")[0] for s in range(9)]
+    np.testing.assert_allclose(x0, np.array([0, 0, 0, 0, 0, 10, 20, 30, 30]) / 80, atol=1e-6)
+    x3 = [_feat(f, 3, s, "MidHip")[0] for s in range(9)]
+    np.testing.assert_allclose(x3, np.array([-30, -30, -20, -10, 0, 0, 0, 0, 0]) / 80, atol=1e-6)
+
+
+def _random_clip(seed=0, T=20):
+    rng = np.random.default_rng(seed)
+    base = _pose((300.0, 200.0))
+    kp = np.repeat(base[None], T, 0)
+    kp[..., :2] += rng.normal(scale=6.0, size=(T, J, 2)) * (kp[..., 2:] > 0)
+    kp[..., 2] = np.where(kp[..., 2] > 0, rng.uniform(0.3, 1.0, (T, J)), 0.0)
+    drop = rng.uniform(size=(T, J)) < 0.15
+    kp[drop] = 0.0
+    return kp.astype(np.float32)
+
+
+def test_features_invariant_to_translation_and_image_scale():
+    kp = _random_clip()
+    size = np.array([1280.0, 720.0])
+    mask = np.arange(20) < 17
+    f = np.asarray(features(kp, size, mask))
+    vis = kp[..., 2:] > 0
+    moved = kp.copy()
+    moved[..., :2] += np.array([-137.0, 58.5]) * vis
+    np.testing.assert_allclose(np.asarray(features(moved, size, mask)), f, atol=2e-5)
+    scaled = kp.copy()
+    scaled[..., :2] *= 2.5
+    np.testing.assert_allclose(np.asarray(features(scaled, 2.5 * size, mask)), f, atol=2e-5)
+    assert np.abs(f).max() <= ce.FEATURE_CLIP and np.any(f != 0)
+
+
+def test_other_layouts_raise():
+    with pytest.raises(ValueError, match="coco17"):
+        ce.contact_features(np.zeros((5, 17, 3)), np.array([640.0, 480.0]), np.ones(5, bool), "coco17")
+
+
+# ---------------------------------------------------------------------------------------
+# flip augmentation
+# ---------------------------------------------------------------------------------------
+
+
+def test_flip_swaps_contact_labels_left_right():
+    # jmocap's order: L heel, L toe, R heel, R toe
+    assert CONTACT_SITES == ("contact_left_heel", "contact_left_toe", "contact_right_heel", "contact_right_toe")
+    labels = np.array([[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, 1.0, 1.0]])
+    np.testing.assert_array_equal(np.asarray(ce.flip_contacts(labels)), [[0, 1, 1, 0], [1, 1, 0, 1]])
+
+
+def test_flip_keypoints_mirrors_and_swaps_joints():
+    kp = _pose()[None]
+    kp[0, BODY25.index("Nose")] = (100.0, 20.0, 0.7)
+    out = np.asarray(ce.flip_keypoints(kp, np.array([640.0, 480.0])))[0]
+    # the new left heel is the mirrored right heel (92, 184) -> (640 - 92, 184)
+    np.testing.assert_allclose(out[BODY25.index("LHeel")], [548.0, 184.0, 0.9])
+    np.testing.assert_allclose(out[BODY25.index("RBigToe")], [520.0, 165.0, 0.9])
+    np.testing.assert_allclose(out[BODY25.index("Nose")], [540.0, 20.0, 0.7])
+    assert np.all(out[BODY25.index("Neck")] == 0)  # undetected stays zero
+
+
+def test_flip_features_equal_features_of_flipped_keypoints():
+    kp = _random_clip(1)
+    size = np.array([1280.0, 720.0])
+    mask = np.ones(20, bool)
+    a = ce.flip_features(features(kp, size, mask))
+    b = features(ce.flip_keypoints(kp, size), size, mask)
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=2e-5)
+
+
+# ---------------------------------------------------------------------------------------
+# jit + vmap, and the shipped weights on synthetic clips
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def clips():
+    """Three short synthetic clips tracked in simulation (force contact labels, like the held-out
+    archive), seed 2024 (neither the training seed 7 nor the held-out 123)."""
+    from jmocap.data import synthetic as S
+
+    cfg = S.SynthConfig(frames=40, physics=True)
+    return [S.generate_clip(2024, i, cfg) for i in range(3)]
+
+
+@pytest.fixture(scope="module")
+def params():
+    return ce.default_contact_params()
+
+
+def test_shipped_weights_load_as_float32(params):
+    leaves = jax.tree.leaves(params)
+    assert leaves and all(np.asarray(x).dtype == np.float32 for x in leaves)
+    assert ce.mlp_widths(params)[-1] == 32 and "batch_stats" in params
+    assert ce.default_contact_params() is params  # cached
+
+
+def test_jit_vmap_over_padded_clips_equals_per_clip(params, clips):
+    a, b = clips[0].slice(0, 30), clips[1]
+    batch = jax.tree.map(lambda *x: np.stack(x), ClipInputs.from_clip(a, 48), ClipInputs.from_clip(b, 48))
+    got = np.asarray(jax.jit(jax.vmap(ce.estimate_contacts, in_axes=(None, 0)))(params, batch))
+    assert got.shape == (2, 48, 4)
+    one = jax.jit(ce.estimate_contacts)
+    for i, c in enumerate((a, b)):
+        own = np.asarray(one(params, ClipInputs.from_clip(c)))
+        np.testing.assert_allclose(got[i, : c.num_frames], own, atol=1e-6)
+        np.testing.assert_array_equal(got[i, c.num_frames:], 0.0)
+        assert np.all((own >= 0) & (own <= 1))
+
+
+def _f1(pred, gt):
+    tp = np.sum(pred & gt)
+    return 2 * tp / (2 * tp + np.sum(pred & ~gt) + np.sum(~pred & gt))
+
+
+def test_shipped_weights_beat_the_majority_class(params, clips):
+    est = jax.jit(ce.estimate_contacts)
+    # one padded length: one compilation
+    pred = np.concatenate([np.asarray(est(params, ClipInputs.from_clip(c, 48)))[: c.num_frames]
+                           for c in clips]) > 0.5
+    gt = np.concatenate([c.gt_contacts for c in clips]) > 0.5
+    # the majority label of these very clips, per contact point (a baseline that sees the answers)
+    majority = np.broadcast_to(gt.mean(0) > 0.5, gt.shape)
+    f1, base = _f1(pred, gt), _f1(majority, gt)
+    print(f"voted F1 {f1:.3f}, majority F1 {base:.3f}, accuracy {np.mean(pred == gt):.3f} vs "
+          f"{np.mean(majority == gt):.3f}, kinds {[c.meta['kind'] for c in clips]}")
+    assert f1 > base, (f1, base)
+    assert np.mean(pred == gt) > np.mean(majority == gt)
