@@ -154,6 +154,8 @@ def test_a_clip_that_satisfies_the_physics_stays_put():
         return out, TO.outputs(model, out.q, out.force, prob.mask, prob.fps)
 
     out, (qd, tau, grf, report) = run(prob, q)
+    again, _ = run(prob, q)
+    np.testing.assert_array_equal(np.asarray(again.q), np.asarray(out.q))  # same input, same result
     kp = lambda x: jax.vmap(lambda y: P.keypoints(model, y, "body25"))(x)  # noqa: E731
     moved = np.linalg.norm(np.asarray(kp(out.q) - kp(q)), axis=-1)
     assert moved.mean() < 0.01, moved.mean()

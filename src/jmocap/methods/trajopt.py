@@ -40,10 +40,11 @@ character (its bone lengths, joint limits and mass distribution), in two stages:
 The joint torques are then ``tau = M qdd + h - J_c^T lambda`` (:func:`jmocap.physics.rnea`): the
 residual root wrench ``tau[:6]`` is what the optimisation could not remove.
 
-Both stages run L-BFGS (optax, zoom line search) for a fixed number of iterations, so the
-program is ``jax.jit``-ed once per length bucket and ``jax.vmap``-ed over clips; each clip's
-convergence report (objective before and after, the terms, gradient norm, residual, penetration
-and slip) is part of its result (:attr:`jmocap.motion.Motion.diagnostics`). The result is a
+The stages run L-BFGS (optax, zoom line search) for a fixed number of iterations, so the
+program is ``jax.jit``-ed once per length bucket; ``jax.vmap`` over clips runs their
+optimisations one after another in that program (:func:`fit_clip`); each clip's
+convergence report (objective before and after, the terms, gradient norm, residual,
+penetration) is part of its result (:attr:`jmocap.motion.Motion.diagnostics`). The result is a
 deterministic function of the input. See docs/method.md ("trajopt") for every weight.
 """
 
@@ -526,7 +527,6 @@ def initial_trajectory(model: Model, q_hat: Array, mask: Array) -> Array:
     sole_h = jax.vmap(lambda x: S.sole_points(model, P.forward_kinematics(model, x))[2])(q_hat)
     low = jnp.min(jnp.where(mask[:, None], sole_h, jnp.inf))
     low = jnp.where(jnp.isfinite(low), low, 0.0)
-    # per frame, the lowest sole point (the supporting foot) at most this far above the floor
     return q_hat.at[:, 2].add(-low)
 
 
