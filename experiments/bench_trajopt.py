@@ -75,7 +75,7 @@ def main() -> None:
             print(f"| {B} | {compile_s - full * B:.0f} | {full:.2f} | | | |")
             continue
         nophys, nofit = per["no physics"], per["no fit"]
-        share = lambda x: f"{100 * x / full:.0f} %"  # noqa: E731
+        share = lambda x, full=full: f"{100 * x / full:.0f} %"  # noqa: E731
         print(f"| {B} | {compile_s - full * B:.0f} | {full:.2f} | {share(nophys - nofit)} | {share(full - nophys)} "
               f"| {share(nofit)} |")
 

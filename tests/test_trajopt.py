@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from tests.conftest import x64
 
 from jmocap import physics as P
 from jmocap.camera import project
@@ -20,7 +21,6 @@ from jmocap.inputs import ClipInputs
 from jmocap.methods import get_method
 from jmocap.methods import trajopt as TO
 from jmocap.model import character
-from tests.conftest import x64
 
 DEMO = files("jmocap") / "assets/demo/ground_truth"
 
@@ -78,7 +78,7 @@ def test_force_subproblem_against_clarabel():
         s.tol_gap_abs = s.tol_gap_rel = s.tol_feas = 1e-12
         sol = clarabel.DefaultSolver(P_, -g, sparse.csc_matrix(-np.eye(32)), np.zeros(32), cones, s).solve()
         ref = np.asarray(sol.x)
-        obj = lambda x: 0.5 * x @ H @ x - g @ x  # noqa: E731
+        obj = lambda x, H=H, g=g: 0.5 * x @ H @ x - g @ x  # noqa: E731
         assert obj(c) - obj(ref) < 1e-8 * max(1.0, abs(obj(ref)))
         assert np.all(c >= 0)
 
@@ -133,7 +133,8 @@ def test_objective_gradient_matches_finite_differences():
         for _ in range(4):
             d = jax.tree.map(lambda a: rng.normal(size=a.shape), x)
             eps = 1e-5
-            fd = (f(jax.tree.map(lambda a, b: a + eps * b, x, d)) - f(jax.tree.map(lambda a, b: a - eps * b, x, d))) / (2 * eps)
+            step = lambda s, d=d: jax.tree.map(lambda u, v: u + s * v, x, d)  # noqa: E731
+            fd = (f(step(eps)) - f(step(-eps))) / (2 * eps)
             an = sum(float(jnp.sum(a * b)) for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(d), strict=True))
             # 1e-2: the forces come from an iterative solve, whose own small dependence on x the
             # differences see and Danskin's gradient does not (measured 4e-3 here)

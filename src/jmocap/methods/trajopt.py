@@ -58,7 +58,7 @@ from flax import struct
 
 from jmocap import physics as P
 from jmocap.camera import Camera, project
-from jmocap.constants import FRICTION_MU, GRAVITY
+from jmocap.constants import FRICTION_MU
 from jmocap.inputs import ClipInputs
 from jmocap.layouts import get_layout
 from jmocap.methods import stages as S
@@ -116,7 +116,7 @@ class TrajOptConfig(KinematicConfig):
     touch_m: float = 0.01  # a sole point this close to the floor may carry force, labelled or not
 
 
-def init_params(key: Array, model: Model, config: TrajOptConfig = TrajOptConfig()) -> dict:
+def init_params(key: Array, model: Model, config: TrajOptConfig = TrajOptConfig()) -> dict:  # noqa: B008
     """Fresh parameters: TPNet (the contact estimator ships its own, see
     :mod:`jmocap.methods.contact_estimation`)."""
     return init_tpnet_params(key, model, config)
@@ -696,7 +696,8 @@ def _fit_clips(axis_size, in_batched, model, prob, q_init, config):
     return out, jax.tree.map(lambda _: True, out)
 
 
-def reconstruct(params: dict, model: Model, inputs: ClipInputs, config: TrajOptConfig = TrajOptConfig()) -> Motion:
+def reconstruct(params: dict, model: Model, inputs: ClipInputs,
+                config: TrajOptConfig = TrajOptConfig()) -> Motion:  # noqa: B008
     """2D keypoints of one clip -> a :class:`Motion` fitted to them and to the equations of
     motion (see the module docstring)."""
     tp = S.target_pose(params, model, inputs, config)
