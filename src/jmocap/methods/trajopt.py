@@ -303,7 +303,8 @@ class FrameDynamics:
 def frame_dynamics(model: Model, kin, q: Array, qd: Array, qdd: Array, allowed: Array, config: TrajOptConfig,
                    edges: Array) -> FrameDynamics:
     """One frame's root-wrench residual after the best contact forces (variable projection):
-    forces only at ``allowed`` sole points (8,) bool, each a non-negative combination of the
+    forces only at ``allowed`` sole points (8,) bool (those of labelled sites) and at any within
+    ``config.touch_m`` of the floor (its current height, a constant of the step), each a non-negative combination of the
     pyramid edges ``edges`` (4, 3). Units: the force rows in body weights, the torque rows in
     body weight x 1 m."""
     pts, bodies, _ = S.sole_points(model, kin)
@@ -312,6 +313,7 @@ def frame_dynamics(model: Model, kin, q: Array, qd: Array, qdd: Array, allowed: 
     weight = S.body_weight(model, q.dtype)
     # generalised root force of a unit body-weight force along each edge at each point
     A = jnp.einsum("pkv,ek->vpe", jacp[..., :6], edges)[:6] * weight  # (6, 8, 4)
+    allowed = allowed | (jax.lax.stop_gradient(pts[:, 2]) < config.touch_m)  # touching: may push too
     A = A * allowed[None, :, None]
     A = A.reshape(6, -1) / weight
     b = wrench[:6] / weight
@@ -351,20 +353,11 @@ def geometry(model: Model, q: Array, layout: str, *, dynamics=None) -> FrameGeom
     return FrameGeometry(kp, fd.points, fd)
 
 
-def allowed_points(contacts: Array, sole_height: Array, touch) -> Array:
-    """(T, 8) sole points that may carry force: those of a labelled site, and any touching the
-    floor (within ``touch``)."""
-    return (jnp.repeat(contacts > 0.5, 2, axis=-1) | (sole_height < touch))
-
-
 def dynamics_inputs(model: Model, q: Array, prob: Problem, config: TrajOptConfig):
-    """``(qd, qdd, allowed, config)`` for :func:`geometry`: the finite differences and the sole
-    points that may carry force (decided on the trajectory's current heights, a constant of the
-    step)."""
+    """``(qd, qdd, labelled, config)`` for :func:`geometry`: the finite differences and the sole
+    points (T, 8) of labelled sites (:func:`frame_dynamics` adds those touching the floor)."""
     qd, qdd = frame_velocities(q, prob.fps, prob.length)
-    heights = jax.lax.stop_gradient(
-        jax.vmap(lambda x: S.sole_points(model, P.forward_kinematics(model, x))[2])(q))
-    return qd, qdd, allowed_points(prob.contacts, heights, config.touch_m), config
+    return qd, qdd, jnp.repeat(prob.contacts > 0.5, 2, axis=-1), config
 
 
 def dynamics_term(fd: FrameDynamics, prob: Problem, config: TrajOptConfig) -> Array:
