@@ -79,7 +79,9 @@ class TrajOptConfig(KinematicConfig):
     clip's real frames of squared residuals, each residual divided by its ``*_sigma`` (the size
     of error that costs as much as one unit of the reprojection term)."""
 
-    kinematic_iterations: int = static(60)  # L-BFGS iterations of each kinematic fit (two fits)
+    frame_iterations: int = static(30)  # Levenberg-Marquardt iterations of the per-frame fit
+    min_keypoints: int = static(8)  # confident keypoints a frame needs to be fitted on its own
+    kinematic_iterations: int = static(60)  # L-BFGS iterations of the whole-clip kinematic fit
     physics_iterations: int = static(80)  # L-BFGS iterations of the physics stage
     memory: int = static(10)  # L-BFGS history
     window: int = static(0)  # frames per window (0: the whole clip is one window)
@@ -89,7 +91,7 @@ class TrajOptConfig(KinematicConfig):
     # --- 2D evidence ---
     w_reproj: float = 1.0
     gm_scale: float = 4.0  # Geman-McClure scale, % of person height in the image
-    gm_scale_initial: float = 25.0  # the first fit's (TPNet's pose is far from the evidence)
+    gm_scale_initial: float = 25.0  # the per-frame fit's first (annealed to gm_scale)
     # --- priors ---
     w_pose: float = 2.0  # TPNet's root-relative 3D joints
     pose_sigma_m: float = 0.1
@@ -480,6 +482,135 @@ def diagonal_scale(model: Model, x: Trajectory, prob: Problem, config: TrajOptCo
     return Trajectory(s[:, :3], s[:, 3:6], s[:, 6:])
 
 
+def _hinge_dofs(model: Model) -> np.ndarray:
+    """The dof of each hinge coordinate (in the order of ``model.topo.hinge_qadr``)."""
+    topo = model.topo
+    slot_dof, slot_qadr = np.asarray(topo.slot_dof), np.asarray(topo.slot_qadr)
+    used = slot_qadr >= 0
+    return slot_dof[used][np.argsort(slot_qadr[used])]
+
+
+def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, config: TrajOptConfig):
+    """One frame's residuals and their Jacobians with respect to a step ``dq`` (nv,) of the
+    configuration (``q (+) dq``, :func:`jmocap.physics.integrate_positions`), from one
+    forward-kinematics pass (the analytic point Jacobians): the projected joints (J, 2) in
+    pixels with (J, 2, nv), and the weighted prior residuals (pose prior, joint limits, floor)
+    whose squares are their terms of the per-frame objective, with their Jacobian."""
+    layout = get_layout(config.layout)
+    roots = np.asarray(layout.root_indices)
+    kin = P.forward_kinematics(model, q)
+    ids = model.site_ids(layout.sites)
+    p3 = P.keypoints(model, q, config.layout, kin=kin)
+    jk, _ = P.point_jacobian(model, kin, p3, np.asarray(model.topo.site_body)[np.asarray(ids)])  # (J, 3, nv)
+    pts, bodies, sole_h = S.sole_points(model, kin)
+    js, _ = P.point_jacobian(model, kin, pts, bodies)
+    # pinhole projection and its derivative
+    R, t = cam.extrinsics[:3, :3], cam.extrinsics[:3, 3]
+    xc = p3 @ R.T + t
+    z = jnp.maximum(xc[:, 2], 1e-3)
+    f, c = cam.intrinsics[:2], cam.intrinsics[2:]
+    uv = f * xc[:, :2] / z[:, None] + c
+    dproj = jnp.zeros((p3.shape[0], 2, 3), q.dtype)
+    dproj = dproj.at[:, 0, 0].set(f[0] / z).at[:, 1, 1].set(f[1] / z)
+    dproj = dproj.at[:, :, 2].set(-f * xc[:, :2] / (z * z)[:, None])
+    j_uv = jnp.einsum("jab,bc,jcv->jav", dproj, R, jk)
+    # priors
+    rr = p3 - jnp.mean(p3[roots], 0)
+    j_rr = jk - jnp.mean(jk[roots], 0)
+    hinge = q[model.topo.hinge_qadr]
+    lo = jnp.asarray(model.q_lower, q.dtype)[model.topo.hinge_qadr]
+    hi = jnp.asarray(model.q_upper, q.dtype)[model.topo.hinge_qadr]
+    sel = jnp.zeros((hinge.shape[0], model.nv), q.dtype).at[np.arange(hinge.shape[0]), _hinge_dofs(model)].set(1.0)
+    out_lo, out_hi = lo - hinge, hinge - hi
+    a_pose = jnp.sqrt(config.w_pose) / config.pose_sigma_m
+    a_lim = jnp.sqrt(config.w_limits) / config.limit_sigma_rad
+    a_floor = jnp.sqrt(config.w_floor) / config.floor_sigma
+    other = jnp.concatenate([
+        a_pose * (rr - prior_rr).ravel(),
+        a_lim * (jax.nn.relu(out_lo) - jax.nn.relu(out_hi)),
+        a_floor * jax.nn.relu(-sole_h),
+    ])
+    j_other = jnp.concatenate([
+        a_pose * j_rr.reshape(-1, model.nv),
+        -a_lim * ((out_lo > 0).astype(q.dtype) + (out_hi > 0).astype(q.dtype))[:, None] * sel,
+        -a_floor * (sole_h < 0).astype(q.dtype)[:, None] * js[:, 2, :],
+    ])
+    return uv, j_uv, other, j_other
+
+
+def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, iterations: int,
+                  gm_start, gm_end) -> Array:
+    """Every frame fitted on its own (no temporal or contact terms) by Levenberg-Marquardt on
+    the configuration manifold (steps ``q (+) dq``, analytic Jacobians): the robust
+    reprojection (Geman-McClure, iteratively reweighted, its scale annealed from ``gm_start``
+    to ``gm_end`` % of the person's image height over the iterations, a graduated
+    non-convexity: far-off starting poses first see every keypoint, then stop seeing the
+    outliers), the pose prior, joint limits and the floor. Each frame's damped Gauss-Newton
+    system (nv x nv) is solved exactly at every step, which a first-order method over the whole
+    clip, with one line search for all frames, cannot do in few iterations when frames start
+    at very different distances from their evidence.
+
+    Frames with too little evidence (fewer than ``config.min_keypoints`` confident keypoints,
+    e.g. the person leaving the image) cannot be fitted on their own: they take the root
+    position interpolated between, and the rest of the configuration of, the nearest frames
+    that have it (the temporal terms of the next stage then refine them). Returns (T, nq)."""
+    cam = Camera(prob.intrinsics, jnp.zeros(2, q.dtype), prob.extrinsics)
+    conf = prob.keypoints[..., 2]
+    target = prob.keypoints[..., :2]
+    unit = prob.unit_px
+
+    def robust(uv, kp, cf, c):
+        r2 = jnp.sum((uv - kp) ** 2, -1) / unit**2
+        return config.w_reproj * jnp.sum(cf * geman_mcclure(r2, c)), r2
+
+    def cost(qt, prior, kp, cf, c):
+        uv, _, other, _ = _frame_residuals(model, qt, prior, cam, config)
+        return robust(uv, kp, cf, c)[0] + jnp.sum(other**2)
+
+    def solve_frame(qt, prior, kp, cf):
+        def step(k, s):
+            qt, lam = s
+            frac = k / jnp.maximum(iterations - 1, 1)
+            c = gm_start * (gm_end / gm_start) ** frac
+            uv, j_uv, other, j_other = _frame_residuals(model, qt, prior, cam, config)
+            f_old, r2 = robust(uv, kp, cf, c)
+            f_old = f_old + jnp.sum(other**2)
+            w = jnp.sqrt(config.w_reproj * cf * (c * c / (c * c + r2)) ** 2)  # IRLS: sqrt(rho')
+            r = jnp.concatenate([(w[:, None] * (uv - kp) / unit).ravel(), other])
+            Jm = jnp.concatenate([(w[:, None, None] * j_uv / unit).reshape(-1, model.nv), j_other])
+            H = Jm.T @ Jm
+            g = Jm.T @ r
+            D = jnp.diag(H) + 1e-6 * jnp.trace(H) / model.nv + 1e-9
+            chol = jax.scipy.linalg.cho_factor(H + lam * jnp.diag(D))
+            dq = -jax.scipy.linalg.cho_solve(chol, g)
+            q_new = P.integrate_positions(model, qt, dq, 1.0)
+            f_new = cost(q_new, prior, kp, cf, c)
+            ok = jnp.isfinite(f_new) & (f_new < f_old)
+            qt = jnp.where(ok, q_new, qt)
+            lam = jnp.clip(jnp.where(ok, lam * 0.3, lam * 10.0), 1e-7, 1e7)
+            return qt, lam
+
+        qt, _ = jax.lax.fori_loop(0, iterations, step, (qt, jnp.asarray(1e-3, qt.dtype)))
+        return qt
+
+    fitted = jax.vmap(solve_frame)(q, prob.prior_rr, target, conf)
+    # frames without enough evidence: from their neighbours
+    T = q.shape[0]
+    t = jnp.arange(T)
+    good = prob.mask & (jnp.sum(conf > 0.1, -1) >= config.min_keypoints)
+    prev = jax.lax.cummax(jnp.where(good, t, -1), axis=0)
+    nxt = jax.lax.cummin(jnp.where(good, t, T), axis=0, reverse=True)
+    has_prev, has_next = prev >= 0, nxt < T
+    p_i, n_i = jnp.clip(prev, 0, T - 1), jnp.clip(nxt, 0, T - 1)
+    near = jnp.where(has_prev & (~has_next | (t - prev <= nxt - t)), p_i, n_i)
+    a = jnp.where(has_prev & has_next, (t - prev) / jnp.maximum(nxt - prev, 1), 0.0).astype(q.dtype)
+    pos = jnp.where((has_prev & has_next)[:, None], (1 - a[:, None]) * fitted[p_i, :3] + a[:, None] * fitted[n_i, :3],
+                    fitted[near, :3])
+    filled = fitted[near].at[:, :3].set(pos)
+    keep = good | ~(jnp.any(good))
+    return jnp.where(keep[:, None], fitted, filled)
+
+
 # ---------------------------------------------------------------------------------------
 # the method
 # ---------------------------------------------------------------------------------------
@@ -536,14 +667,18 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     """The stages on one window (see the module docstring)."""
     x0, base = from_q(model, q_init)
     prob = prob.replace(base_quat=base)
-    # stage 0: every frame on its own (no temporal or contact-height terms) with a wide robust
-    # scale: TPNet's pose is far from the evidence, and the temporal terms would make these
-    # first, large moves ill-conditioned (Rempe App. B.4: first pass without the floor)
+    # stage 0: every frame on its own (no temporal or contact-height terms), Levenberg-Marquardt
+    # with an annealed robust scale: TPNet's pose is far from the evidence, and the temporal
+    # terms would make these first, large moves ill-conditioned (Rempe App. B.4: first pass
+    # without the floor)
     per_frame = config.replace(w_accel=0.0, w_contact_vel=0.0)
-    f0 = lambda x: objective(model, x, prob, per_frame, physics=False, heights=False,  # noqa: E731
-                             gm_scale=config.gm_scale_initial)
-    x1, rep1 = lbfgs(f0, x0, config.kinematic_iterations, config.memory,
-                     diagonal_scale(model, x0, prob, per_frame))
+    f0 = lambda x, pr: objective(model, x, pr, per_frame, physics=False, heights=False)  # noqa: E731
+    q1 = per_frame_fit(model, q_init, prob, per_frame, config.frame_iterations, config.gm_scale_initial,
+                       config.gm_scale)
+    before = f0(x0, prob)
+    x1, base = from_q(model, q1)
+    prob = prob.replace(base_quat=base)
+    rep1 = StageReport(before, f0(x1, prob), jnp.zeros((), q1.dtype), jnp.asarray(config.frame_iterations))
     # outlier labels: points labelled in contact that the fit holds far above the floor (their
     # App. B.4 fits the floor robustly; here the floor is known, z = 0)
     q1 = to_q(model, x1, prob.base_quat)

@@ -1,0 +1,137 @@
+"""Ablations of ``trajopt`` on a few held-out clips: what each stage and each input contributes.
+
+    .venv/bin/python experiments/ablate_trajopt.py --clips 0 1 4 6 17 28 35 --set w_pose=1
+    .venv/bin/python experiments/ablate_trajopt.py --gt-contacts          # oracle contact labels
+
+Every clip is padded to one length (``--length``), so the fit compiles once; the config's
+weights are traced (changing them with ``--set`` does not recompile; the static fields do).
+Per clip and stage (TPNet's target, the kinematic fit, the physics fit) it prints the
+reprojection error against the clean 2D (px), MPJPE (root-aligned), PA-MPJPE, the root error
+and its part along the camera's viewing direction (depth), all in mm, and for the final fit the
+contact F1 of the labels used. The XLA compilation cache is ~/.cache/jmocap/xla-dev.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jmocap import physics as P
+from jmocap.data.clip import load_clip
+from jmocap.inputs import ClipInputs
+from jmocap.methods import stages as S
+from jmocap.methods import trajopt as TO
+from jmocap.pipeline import subject_model
+from jmocap.weights import default_params
+
+
+def procrustes(p, g):
+    """p aligned to g by the best similarity transform (per frame)."""
+    mp, mg = p.mean(-2, keepdims=True), g.mean(-2, keepdims=True)
+    a, b = p - mp, g - mg
+    U, s, Vt = np.linalg.svd(np.swapaxes(a, -1, -2) @ b)
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.ones_like(s)
+    D[..., -1] = d
+    R = (U * D[..., None, :]) @ Vt
+    scale = (s * D).sum(-1) / np.maximum((a**2).sum((-1, -2)), 1e-12)
+    return scale[..., None, None] * a @ R + mg
+
+
+def scores(kp, gt, clip, roots):
+    ext = clip.extrinsics
+    K = clip.intrinsics
+
+    def proj(x):
+        c = x @ ext[:3, :3].T + ext[:3, 3]
+        return np.stack([K[0] * c[..., 0] / c[..., 2] + K[2], K[1] * c[..., 1] / c[..., 2] + K[3]], -1), c
+
+    uv, cp = proj(kp)
+    uvg, cg = proj(gt)
+    rp, rg = kp[:, roots].mean(1), gt[:, roots].mean(1)
+    root_err = np.linalg.norm(rp - rg, axis=-1)
+    depth = np.abs(cp[:, roots].mean(1)[:, 2] - cg[:, roots].mean(1)[:, 2])
+    rel = np.linalg.norm((kp - rp[:, None]) - (gt - rg[:, None]), axis=-1)
+    pa = np.linalg.norm(procrustes(kp, gt) - gt, axis=-1)
+    return dict(reproj=np.linalg.norm(uv - uvg, axis=-1).mean(), mpjpe=1e3 * rel.mean(), pa=1e3 * pa.mean(),
+                root=1e3 * root_err.mean(), depth=1e3 * depth.mean())
+
+
+def f1(pred, gt):
+    tp = np.sum(pred & gt)
+    return 100 * 2 * tp / max(np.sum(pred) + np.sum(gt), 1)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--archive", default="data/heldout")
+    ap.add_argument("--clips", type=int, nargs="+", default=[0, 1, 4, 6, 17, 28, 35])
+    ap.add_argument("--length", type=int, default=304)
+    ap.add_argument("--set", nargs="*", default=[], help="config fields, name=value")
+    ap.add_argument("--gt-contacts", action="store_true", help="the ground-truth contact labels")
+    ap.add_argument("--float64", action="store_true")
+    ap.add_argument("--dump", default="", help="folder: save each clip's joints per stage (npz)")
+    args = ap.parse_args()
+    jax.config.update("jax_compilation_cache_dir", os.path.expanduser("~/.cache/jmocap/xla-dev"))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    if args.float64:
+        jax.config.update("jax_enable_x64", True)
+
+    params, base = default_params("trajopt")
+    changes = {}
+    for s in args.set:
+        k, v = s.split("=")
+        cur = getattr(base, k)
+        changes[k] = type(cur)(v) if isinstance(cur, (int, str)) and not isinstance(cur, bool) else float(v)
+    config = base.replace(**changes)
+    from jmocap.layouts import get_layout
+
+    roots = np.asarray(get_layout(config.layout).root_indices)
+
+    @jax.jit
+    def run(params, model, inputs, gt_contacts, use_gt, config):
+        tp = S.target_pose(params, model, inputs, config)
+        mask = jnp.asarray(inputs.mask)
+        prob_c = TO.contact_labels(params, inputs, S.contact_probability(tp.contact_logits), config)
+        prob_c = jnp.where(use_gt, gt_contacts, prob_c)
+        q0 = TO.initial_trajectory(model, tp.q_hat, mask)
+        out = TO.fit(model, TO.problem(model, inputs, tp.q_hat, prob_c, config), q0, config)
+        kp = lambda q: jax.vmap(lambda x: P.keypoints(model, x, config.layout))(q)  # noqa: E731
+        return kp(q0), kp(out.q_kinematic), kp(out.q), out.contacts, out.diagnostics
+
+    rows = []
+    for i in args.clips:
+        clip = load_clip(Path(args.archive) / f"synth_{i:06d}.npz")
+        T = clip.num_frames
+        model = subject_model(clip)
+        inputs = ClipInputs.from_clip(clip, args.length)
+        gtc = np.zeros((args.length, 4), np.float32)
+        gtc[:T] = clip.gt_contacts
+        t0 = time.perf_counter()
+        k0, k1, k2, used, diag = jax.block_until_ready(run(params, model, inputs, gtc, args.gt_contacts, config))
+        dt = time.perf_counter() - t0
+        gt = clip.gt_keypoints3d
+        if args.dump:
+            Path(args.dump).mkdir(parents=True, exist_ok=True)
+            np.savez(Path(args.dump) / f"clip{i}.npz", init=k0[:T], kin=k1[:T], phys=k2[:T], gt=gt,
+                     contacts=np.asarray(used[:T]), gt_contacts=clip.gt_contacts)
+        r = {"clip": i, "kind": clip.meta.get("kind", "?"), "s": dt}
+        for name, k in (("init", k0), ("kin", k1), ("phys", k2)):
+            for key, v in scores(np.asarray(k[:T], np.float64), gt, clip, roots).items():
+                r[f"{name}_{key}"] = v
+        r["f1"] = f1(np.asarray(used[:T]) > 0.5, clip.gt_contacts > 0.5)
+        r["gnorm"] = float(diag["grad_norm"])
+        rows.append(r)
+        print(" ".join(f"{k}={v:.1f}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items()), flush=True)
+    keys = [k for k in rows[0] if k not in ("clip", "kind")]
+    print("mean " + " ".join(f"{k}={np.mean([r[k] for r in rows]):.1f}" for k in keys))
+
+
+if __name__ == "__main__":
+    main()
