@@ -103,7 +103,7 @@ def main():
         q0 = TO.initial_trajectory(model, tp.q_hat, mask)
         out = TO.fit(model, TO.problem(model, inputs, tp.q_hat, prob_c, config), q0, config)
         kp = lambda q: jax.vmap(lambda x: P.keypoints(model, x, config.layout))(q)  # noqa: E731
-        return kp(q0), kp(out.q_kinematic), kp(out.q), out.contacts, out.diagnostics
+        return kp(q0), kp(out.q_kinematic), kp(out.q), out.contacts, out.diagnostics, out.force
 
     rows = []
     for i in args.clips:
@@ -114,7 +114,7 @@ def main():
         gtc = np.zeros((args.length, 4), np.float32)
         gtc[:T] = clip.gt_contacts
         t0 = time.perf_counter()
-        k0, k1, k2, used, diag = jax.block_until_ready(run(params, model, inputs, gtc, args.gt_contacts, config))
+        k0, k1, k2, used, diag, force = jax.block_until_ready(run(params, model, inputs, gtc, args.gt_contacts, config))
         dt = time.perf_counter() - t0
         gt = clip.gt_keypoints3d
         if args.dump:
@@ -125,12 +125,20 @@ def main():
         for name, k in (("init", k0), ("kin", k1), ("phys", k2)):
             for key, v in scores(np.asarray(k[:T], np.float64), gt, clip, roots).items():
                 r[f"{name}_{key}"] = v
+        w = float(np.sum(model.body_mass)) * 9.81
+        net = np.asarray(force[:T]).sum(1) / w
+        gt_net = clip.gt_grf.sum(-2) / (clip.mass_kg * 9.81 if clip.mass_kg else w)
+        r["grf_err"] = 100 * np.linalg.norm(net - gt_net, axis=-1).mean()
+        flight = ~np.any(clip.gt_contacts > 0.5, -1)
+        r["ballistic"] = 100 * np.median(np.linalg.norm(net[flight], axis=-1)) if flight.any() else np.nan
+        jerk = np.diff(np.asarray(k2[:T]), 3, axis=0) * float(clip.fps) ** 3 / 1000
+        r["jitter"] = np.linalg.norm(jerk, axis=-1).mean()
         r["f1"] = f1(np.asarray(used[:T]) > 0.5, clip.gt_contacts > 0.5)
         r["gnorm"] = float(diag["grad_norm"])
         rows.append(r)
         print(" ".join(f"{k}={v:.1f}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items()), flush=True)
     keys = [k for k in rows[0] if k not in ("clip", "kind")]
-    print("mean " + " ".join(f"{k}={np.mean([r[k] for r in rows]):.1f}" for k in keys))
+    print("mean " + " ".join(f"{k}={np.nanmean([r[k] for r in rows]):.1f}" for k in keys))
 
 
 if __name__ == "__main__":
