@@ -97,7 +97,7 @@ class TrajOptConfig(KinematicConfig):
     pose_sigma_m: float = 0.1
     w_limits: float = 10.0
     limit_sigma_rad: float = 0.05
-    w_accel: float = 0.2  # 3D joint accelerations
+    w_accel: float = 20.0  # 3D joint accelerations
     accel_sigma: float = 10.0  # m/s^2
     # --- contacts ---
     contact_threshold: float = 0.5
@@ -112,6 +112,8 @@ class TrajOptConfig(KinematicConfig):
     mu: float = FRICTION_MU
     w_dynamics: float = 20.0  # residual root wrench
     dynamics_sigma: float = 0.05  # body weights (force), body weight x 1 m (torque)
+    w_wrench_rate: float = 10.0  # smooth external forces (the root wrench the motion needs)
+    wrench_rate_sigma: float = 0.3  # body weights per frame
     w_stay: float = 0.2  # pull of the physics stage towards the kinematic fit
     stay_sigma_m: float = 0.03
     force_regularisation: float = 1e-3  # of the edge coefficients (body weights): unique forces
@@ -296,6 +298,7 @@ def nnls(H: Array, g: Array, iterations: int) -> Array:
 @struct.dataclass
 class FrameDynamics:
     residual: Array  # (6,) root wrench the contact forces cannot produce, body weights (scaled)
+    need: Array  # (6,) root wrench the motion needs, body weights (scaled)
     coeff: Array  # (8, 4) edge coefficients, body weights
     wrench: Array  # (nv,) M qdd + h
     Jt: Array  # (nv, 8, 3) contact Jacobians, transposed
@@ -322,7 +325,7 @@ def frame_dynamics(model: Model, kin, q: Array, qd: Array, qdd: Array, allowed: 
     H = A.T @ A + config.force_regularisation * jnp.eye(A.shape[1], dtype=A.dtype)
     c = jax.lax.stop_gradient(nnls(jax.lax.stop_gradient(H), jax.lax.stop_gradient(A.T @ b), config.nnls_iterations))
     residual = A @ c - b
-    return FrameDynamics(residual, c.reshape(8, 4), wrench, jnp.transpose(jacp, (2, 0, 1)), pts)
+    return FrameDynamics(residual, b, c.reshape(8, 4), wrench, jnp.transpose(jacp, (2, 0, 1)), pts)
 
 
 @struct.dataclass
@@ -367,6 +370,15 @@ def dynamics_term(fd: FrameDynamics, prob: Problem, config: TrajOptConfig) -> Ar
     return _frames_mean(r2, prob.mask.astype(r2.dtype))
 
 
+def wrench_rate_term(fd: FrameDynamics, prob: Problem, config: TrajOptConfig) -> Array:
+    """Change of the root wrench the motion needs from frame to frame (body weights per frame):
+    the external forces of a body change smoothly (the centre of mass's jerk), where finite
+    differences of a trajectory fitted to noisy keypoints do not."""
+    d = jnp.sum((fd.need[1:] - fd.need[:-1]) ** 2, -1) / config.wrench_rate_sigma**2
+    m = prob.mask.astype(d.dtype)
+    return _frames_mean(d, m[1:] * m[:-1])
+
+
 def stay_term(keypoints3d: Array, prob: Problem, config: TrajOptConfig) -> Array:
     """Squared distance of the joints (world frame) from those of the anchor (the kinematic fit)."""
     d = jnp.sum((keypoints3d - prob.anchor_kp) ** 2, (-1, -2)) / config.stay_sigma_m**2
@@ -380,7 +392,7 @@ def _weight(config: TrajOptConfig, name: str):
     return {"reproj": config.w_reproj, "pose": config.w_pose, "limits": config.w_limits,
             "accel": config.w_accel, "contact_height": config.w_contact_height,
             "contact_still": config.w_contact_vel, "floor": config.w_floor,
-            "dynamics": config.w_dynamics, "stay": config.w_stay}[name]
+            "dynamics": config.w_dynamics, "stay": config.w_stay, "wrench_rate": config.w_wrench_rate}[name]
 
 
 def objective_terms(model: Model, x: Trajectory, prob: Problem, config: TrajOptConfig, *, physics: bool,
@@ -396,6 +408,7 @@ def objective_terms(model: Model, x: Trajectory, prob: Problem, config: TrajOptC
     if physics:
         terms["dynamics"] = dynamics_term(geo.dynamics, prob, config)
         terms["stay"] = stay_term(geo.keypoints3d, prob, config)
+        terms["wrench_rate"] = wrench_rate_term(geo.dynamics, prob, config)
     return terms
 
 
