@@ -13,7 +13,8 @@ character (its bone lengths, joint limits and mass distribution), in two stages:
      height in the image, so one set of weights serves every resolution and distance);
    * a prior towards TPNet's root-relative 3D joints (their ``E_data``: it holds the depth that
      one view cannot see) and joint-limit penalties from the model;
-   * smoothness: 3D joint accelerations (their ``E_acc``);
+   * smoothness: 3D joint accelerations (their ``E_acc``), and in the physics stage the change
+     of the root wrench the motion needs from frame to frame (the centre of mass's jerk);
    * contacts (their ``E_cont``, ``E_floor``): a foot point labelled in contact stays still and
      its sole lies on the floor; no sole point is below the floor, labelled or not.
 
@@ -40,8 +41,10 @@ character (its bone lengths, joint limits and mass distribution), in two stages:
 The joint torques are then ``tau = M qdd + h - J_c^T lambda`` (:func:`jmocap.physics.rnea`): the
 residual root wrench ``tau[:6]`` is what the optimisation could not remove.
 
-The stages run L-BFGS (optax, zoom line search) for a fixed number of iterations, so the
-program is ``jax.jit``-ed once per length bucket; ``jax.vmap`` over clips runs their
+A first stage fits every frame on its own by Levenberg-Marquardt (:func:`per_frame_fit`:
+TPNet's pose is far from the evidence, and each frame's small system is solved exactly); the
+whole-clip stages run L-BFGS (optax, zoom line search). Every stage has a fixed number of
+iterations, so the program is ``jax.jit``-ed once per length bucket; ``jax.vmap`` over clips runs their
 optimisations one after another in that program (:func:`fit_clip`); each clip's
 convergence report (objective before and after, the terms, gradient norm, residual,
 penetration) is part of its result (:attr:`jmocap.motion.Motion.diagnostics`). The result is a
