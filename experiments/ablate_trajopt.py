@@ -103,7 +103,8 @@ def main():
         q0 = TO.initial_trajectory(model, tp.q_hat, mask)
         out = TO.fit(model, TO.problem(model, inputs, tp.q_hat, prob_c, config), q0, config)
         kp = lambda q: jax.vmap(lambda x: P.keypoints(model, x, config.layout))(q)  # noqa: E731
-        return kp(q0), kp(out.q_kinematic), kp(out.q), out.contacts, out.diagnostics, out.force
+        feet = jax.vmap(lambda x: P.site_positions(model, x, model.topo.contact_sites))(out.q)
+        return kp(q0), kp(out.q_kinematic), kp(out.q), out.contacts, out.diagnostics, out.force, feet
 
     rows = []
     for i in args.clips:
@@ -114,7 +115,7 @@ def main():
         gtc = np.zeros((args.length, 4), np.float32)
         gtc[:T] = clip.gt_contacts
         t0 = time.perf_counter()
-        k0, k1, k2, used, diag, force = jax.block_until_ready(run(params, model, inputs, gtc, args.gt_contacts, config))
+        k0, k1, k2, used, diag, force, feet = jax.block_until_ready(run(params, model, inputs, gtc, args.gt_contacts, config))
         dt = time.perf_counter() - t0
         gt = clip.gt_keypoints3d
         if args.dump:
@@ -133,6 +134,7 @@ def main():
         r["ballistic"] = 100 * np.median(np.linalg.norm(net[flight], axis=-1)) if flight.any() else np.nan
         jerk = np.diff(np.asarray(k2[:T]), 3, axis=0) * float(clip.fps) ** 3 / 1000
         r["jitter"] = np.linalg.norm(jerk, axis=-1).mean()
+        r["pnp"] = 100 * np.mean(np.all(np.asarray(feet[:T, :, 2]) >= -0.001, -1))
         r["f1"] = f1(np.asarray(used[:T]) > 0.5, clip.gt_contacts > 0.5)
         r["gnorm"] = float(diag["grad_norm"])
         rows.append(r)

@@ -111,6 +111,8 @@ class TrajOptConfig(KinematicConfig):
     outlier_height_m: float = 0.1  # labels further from the floor after the first fit are dropped
     w_floor: float = 10.0  # every sole point above the floor
     floor_sigma: float = 0.005  # m
+    floor_margin_m: float = 0.005  # the floor term acts below this height: the trade-off against
+    # smoothness then settles above the floor, not a few millimetres into it
     # --- physics ---
     mu: float = FRICTION_MU
     w_dynamics: float = 20.0  # residual root wrench
@@ -262,7 +264,7 @@ def kinematic_terms(model: Model, q: Array, geo: FrameGeometry, prob: Problem, c
     height = jnp.sum(c * jnp.sum(sole[..., 2] ** 2, -1), -1) / config.contact_height_sigma**2
     step = jnp.sum((sole[1:] - sole[:-1]) ** 2, (-1, -2)) * prob.fps**2  # (T-1, 4)
     still = jnp.sum(c[1:] * c[:-1] * step, -1) / config.contact_vel_sigma**2
-    floor = jnp.sum(jax.nn.relu(-geo.sole[..., 2]) ** 2, -1) / config.floor_sigma**2
+    floor = jnp.sum(jax.nn.relu(config.floor_margin_m - geo.sole[..., 2]) ** 2, -1) / config.floor_sigma**2
 
     return dict(
         reproj=_frames_mean(reproj, m),
@@ -544,12 +546,12 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
     other = jnp.concatenate([
         a_pose * (rr - prior_rr).ravel(),
         a_lim * (jax.nn.relu(out_lo) - jax.nn.relu(out_hi)),
-        a_floor * jax.nn.relu(-sole_h),
+        a_floor * jax.nn.relu(config.floor_margin_m - sole_h),
     ])
     j_other = jnp.concatenate([
         a_pose * j_rr.reshape(-1, model.nv),
         -a_lim * ((out_lo > 0).astype(q.dtype) + (out_hi > 0).astype(q.dtype))[:, None] * sel,
-        -a_floor * (sole_h < 0).astype(q.dtype)[:, None] * js[:, 2, :],
+        -a_floor * (sole_h < config.floor_margin_m).astype(q.dtype)[:, None] * js[:, 2, :],
     ])
     return uv, j_uv, other, j_other
 
