@@ -7,8 +7,8 @@ Clips are the held-out archive's (``data/heldout``; made by ``experiments/evalua
 if missing), cropped or edge-padded to ``--frames``. For each batch size: the compile time
 (first call, reported separately), then the steady time of ``jit(vmap(reconstruct))`` per clip,
 and the same with each later stage's iterations set to zero, so that the stages' shares follow
-by difference (stage 0 + 1: the kinematic fit; stage 2: physics; the rest: TPNet, contacts,
-outputs). Times are wall-clock on this machine (see docs/performance.md for the record).
+by difference (stages 0 + 1: the per-frame and whole-clip kinematic fits; stage 2: physics; the
+rest: TPNet, contacts, outputs). Times are wall-clock on this machine (see docs/performance.md for the record).
 """
 
 from __future__ import annotations
@@ -46,7 +46,8 @@ def main() -> None:
     variants = {"full": base}
     if not args.no_stages:
         variants.update({"no physics": base.replace(physics_iterations=0),
-                         "no fit": base.replace(physics_iterations=0, kinematic_iterations=0)})
+                         "no fit": base.replace(physics_iterations=0, kinematic_iterations=0,
+                                               frame_iterations=0)})
     fn = jax.jit(jax.vmap(get_method("trajopt").reconstruct, in_axes=(None, 0, 0, None)))
     print(f"trajopt, {args.frames}-frame clips, {jax.device_count()} device(s): {jax.devices()[0].device_kind}")
     print("| batch | compile s | s / clip | kinematic fit | physics | rest |")
