@@ -22,7 +22,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jmocap import metrics as M
 from jmocap import physics as P
+from jmocap.camera import world_to_camera
 from jmocap.data.clip import load_clip
 from jmocap.inputs import ClipInputs
 from jmocap.methods import stages as S
@@ -31,41 +33,15 @@ from jmocap.pipeline import subject_model
 from jmocap.weights import default_params
 
 
-def procrustes(p, g):
-    """p aligned to g by the best similarity transform (per frame)."""
-    mp, mg = p.mean(-2, keepdims=True), g.mean(-2, keepdims=True)
-    a, b = p - mp, g - mg
-    U, s, Vt = np.linalg.svd(np.swapaxes(a, -1, -2) @ b)
-    d = np.sign(np.linalg.det(U @ Vt))
-    D = np.ones_like(s)
-    D[..., -1] = d
-    R = (U * D[..., None, :]) @ Vt
-    scale = (s * D).sum(-1) / np.maximum((a**2).sum((-1, -2)), 1e-12)
-    return scale[..., None, None] * a @ R + mg
-
-
 def scores(kp, gt, clip, roots):
-    ext = clip.extrinsics
-    K = clip.intrinsics
-
-    def proj(x):
-        c = x @ ext[:3, :3].T + ext[:3, 3]
-        return np.stack([K[0] * c[..., 0] / c[..., 2] + K[2], K[1] * c[..., 1] / c[..., 2] + K[3]], -1), c
-
-    uv, cp = proj(kp)
-    uvg, cg = proj(gt)
-    rp, rg = kp[:, roots].mean(1), gt[:, roots].mean(1)
-    root_err = np.linalg.norm(rp - rg, axis=-1)
-    depth = np.abs(cp[:, roots].mean(1)[:, 2] - cg[:, roots].mean(1)[:, 2])
-    rel = np.linalg.norm((kp - rp[:, None]) - (gt - rg[:, None]), axis=-1)
-    pa = np.linalg.norm(procrustes(kp, gt) - gt, axis=-1)
-    return dict(reproj=np.linalg.norm(uv - uvg, axis=-1).mean(), mpjpe=1e3 * rel.mean(), pa=1e3 * pa.mean(),
-                root=1e3 * root_err.mean(), depth=1e3 * depth.mean())
-
-
-def f1(pred, gt):
-    tp = np.sum(pred & gt)
-    return 100 * 2 * tp / max(np.sum(pred) + np.sum(gt), 1)
+    """Pose scores of joints (T, J, 3) against the ground truth (jmocap.metrics), and the root's
+    error along the camera's viewing direction (depth, mm)."""
+    roots = tuple(int(r) for r in roots)
+    cam = clip.camera
+    depth = world_to_camera(cam, kp[:, list(roots)].mean(1))[:, 2] - world_to_camera(cam, gt[:, list(roots)].mean(1))[:, 2]
+    return dict(reproj=float(M.reprojection_error(kp, gt, cam)[0]), mpjpe=float(M.mpjpe(kp, gt, root=roots)),
+                pa=float(M.mpjpe(kp, gt, align="procrustes", root=roots)),
+                root=float(M.root_translation_error(kp, gt, root=roots)), depth=1e3 * float(np.mean(np.abs(depth))))
 
 
 def main():
@@ -127,15 +103,14 @@ def main():
             for key, v in scores(np.asarray(k[:T], np.float64), gt, clip, roots).items():
                 r[f"{name}_{key}"] = v
         w = float(np.sum(model.body_mass)) * 9.81
-        net = np.asarray(force[:T]).sum(1) / w
-        gt_net = clip.gt_grf.sum(-2) / (clip.mass_kg * 9.81 if clip.mass_kg else w)
-        r["grf_err"] = 100 * np.linalg.norm(net - gt_net, axis=-1).mean()
+        gt_w = clip.mass_kg * 9.81 if clip.mass_kg else w
+        grf = np.asarray(force[:T]).reshape(T, 4, 2, 3).sum(2)
+        r["grf_err"] = float(M.grf_error(grf, clip.gt_grf, w, gt_w))
         flight = ~np.any(clip.gt_contacts > 0.5, -1)
-        r["ballistic"] = 100 * np.median(np.linalg.norm(net[flight], axis=-1)) if flight.any() else np.nan
-        jerk = np.diff(np.asarray(k2[:T]), 3, axis=0) * float(clip.fps) ** 3 / 1000
-        r["jitter"] = np.linalg.norm(jerk, axis=-1).mean()
-        r["pnp"] = 100 * np.mean(np.all(np.asarray(feet[:T, :, 2]) >= -0.001, -1))
-        r["f1"] = f1(np.asarray(used[:T]) > 0.5, clip.gt_contacts > 0.5)
+        r["ballistic"] = float(M.grf_ballistic(grf, w, flight))
+        r["jitter"] = float(M.jitter(np.asarray(k2[:T]), float(clip.fps)))
+        r["pnp"] = float(M.non_penetration(np.asarray(feet[:T])))
+        r["f1"] = float(M.contact_classification(np.asarray(used[:T]), clip.gt_contacts)["f1"])
         r["gnorm"] = float(diag["grad_norm"])
         rows.append(r)
         print(" ".join(f"{k}={v:.1f}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items()), flush=True)

@@ -166,6 +166,13 @@ class Topology:
         a = np.asarray(self.slot_qadr)
         return np.sort(a[t != SLOT_NONE])
 
+    @functools.cached_property
+    def hinge_dofadr(self) -> np.ndarray:
+        """dof addresses of all hinge/slide joints, in the order of :attr:`hinge_qadr`."""
+        a = np.asarray(self.slot_qadr)
+        used = a >= 0
+        return np.asarray(self.slot_dof)[used][np.argsort(a[used])]
+
 
 @struct.dataclass
 class Model:

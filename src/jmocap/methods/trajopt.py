@@ -500,14 +500,6 @@ def diagonal_scale(model: Model, x: Trajectory, prob: Problem, config: TrajOptCo
     return Trajectory(s[:, :3], s[:, 3:6], s[:, 6:])
 
 
-def _hinge_dofs(model: Model) -> np.ndarray:
-    """The dof of each hinge coordinate (in the order of ``model.topo.hinge_qadr``)."""
-    topo = model.topo
-    slot_dof, slot_qadr = np.asarray(topo.slot_dof), np.asarray(topo.slot_qadr)
-    used = slot_qadr >= 0
-    return slot_dof[used][np.argsort(slot_qadr[used])]
-
-
 def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, config: TrajOptConfig):
     """One frame's residuals and their Jacobians with respect to a step ``dq`` (nv,) of the
     configuration (``q (+) dq``, :func:`jmocap.physics.integrate_positions`), from one
@@ -538,7 +530,7 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
     hinge = q[model.topo.hinge_qadr]
     lo = jnp.asarray(model.q_lower, q.dtype)[model.topo.hinge_qadr]
     hi = jnp.asarray(model.q_upper, q.dtype)[model.topo.hinge_qadr]
-    sel = jnp.zeros((hinge.shape[0], model.nv), q.dtype).at[np.arange(hinge.shape[0]), _hinge_dofs(model)].set(1.0)
+    sel = jnp.zeros((hinge.shape[0], model.nv), q.dtype).at[np.arange(hinge.shape[0]), model.topo.hinge_dofadr].set(1.0)
     out_lo, out_hi = lo - hinge, hinge - hi
     a_pose = jnp.sqrt(config.w_pose) / config.pose_sigma_m
     a_lim = jnp.sqrt(config.w_limits) / config.limit_sigma_rad
@@ -699,7 +691,6 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     rep1 = StageReport(before, f0(x1, prob), jnp.zeros((), q1.dtype), jnp.asarray(config.frame_iterations))
     # outlier labels: points labelled in contact that the fit holds far above the floor (their
     # App. B.4 fits the floor robustly; here the floor is known, z = 0)
-    q1 = to_q(model, x1, prob.base_quat)
     sole_h = jax.vmap(lambda x: S.sole_points(model, P.forward_kinematics(model, x))[2])(q1)
     low = jnp.min(jnp.where(prob.mask[:, None], sole_h, jnp.inf))
     x1 = x1.replace(root_pos=x1.root_pos.at[:, 2].add(-jnp.where(jnp.isfinite(low), low, 0.0)))

@@ -260,12 +260,7 @@ def integrate_positions(model: Model, q: Array, qd: Array, dt) -> Array:
     qd = jnp.asarray(qd, dtype)
     hq = topo.hinge_qadr
     if hq.size:
-        slot_dof = np.asarray(topo.slot_dof)
-        slot_qadr = np.asarray(topo.slot_qadr)
-        used = slot_qadr >= 0
-        order = np.argsort(slot_qadr[used])
-        dofs = slot_dof[used][order]
-        q = q.at[hq].add(qd[dofs] * dt)
+        q = q.at[hq].add(qd[topo.hinge_dofadr] * dt)
     for qa, da in zip(topo.free_qadr, topo.free_dof, strict=True):
         pos = q[qa : qa + 3] + qd[da : da + 3] * dt
         quat = quat_normalize(quat_mul(q[qa + 3 : qa + 7], quat_exp(qd[da + 3 : da + 6] * dt)))
