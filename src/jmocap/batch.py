@@ -12,13 +12,24 @@ Host-side orchestration around the compute core (:class:`jmocap.pipeline.Reconst
   ``manifest.jsonl`` (flushed and fsynced); a re-run skips the clips whose line says ``ok`` and
   whose file is there with the recorded size. Clips that cannot be read, or whose reconstruction
   is not finite, get a ``failed`` line naming file, frame and field, and the run goes on.
+
+Hostile or clumsy input (docs/formats.md, "Validation" and "Limits"): every clip is validated
+completely before it joins a batch (:func:`check_clip`: the reader's checks, then
+:func:`jmocap.data.validate.check_reconstructable`), and what is implausible but usable is
+reconstructed with ``warnings`` in its manifest line and result; a batch that fails is retried
+clip by clip, so only the culprit fails; input is read within :mod:`jmocap.data.limits`. The
+output folder is locked for the run, a killed run's temporary files are removed when the next
+starts, and SIGINT / SIGTERM (:class:`Interrupted`) end the run after the results already
+computed are written, with ``summary.json`` saying so.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
+import signal
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -32,9 +43,12 @@ import numpy as np
 
 import jmocap
 from jmocap import methods
+from jmocap.data import limits as L
+from jmocap.data.archive import ArchiveError
 from jmocap.data.clip import Clip, FormatError
 from jmocap.data.sources import SUMMARY, Source, open_sources
-from jmocap.io import atomic_write
+from jmocap.data.validate import check_reconstructable
+from jmocap.io import atomic_write, remove_stale_temporaries
 from jmocap.model import Model
 from jmocap.pipeline import Reconstructor, subject_height, subject_model
 from jmocap.results import (
@@ -48,8 +62,19 @@ from jmocap.results import (
 from jmocap.weights import model_sha256, params_sha256
 
 
-def check_clip(clip: Clip, config, where: str) -> None:
-    """What the pipeline needs beyond a valid clip (raises :class:`FormatError`)."""
+class Interrupted(Exception):  # noqa: N818 - a signal, not an error
+    """A run stopped by a signal (SIGINT: exit status 130, SIGTERM: 143)."""
+
+    def __init__(self, signum: int):
+        self.signum = int(signum)
+        self.exit_status = 128 + self.signum
+        super().__init__(f"interrupted by {signal.Signals(self.signum).name}")
+
+
+def check_clip(clip: Clip, config, where: str) -> list[str]:
+    """What the pipeline needs beyond a valid clip: raises :class:`FormatError` (file, frame,
+    field) for a clip the method cannot take or that cannot give a meaningful reconstruction
+    (:func:`~jmocap.data.validate.check_reconstructable`); returns the warnings."""
     if clip.layout != config.layout:
         raise FormatError(
             f"{where}: field 'layout': the clip's keypoints are {clip.layout!r}, the parameters "
@@ -60,6 +85,7 @@ def check_clip(clip: Clip, config, where: str) -> None:
             f"{where}: field 'keypoints': confidence is 0 for every joint of every frame "
             f"(nothing detected in {clip.num_frames} frames)"
         )
+    return check_reconstructable(clip, where)
 
 
 @dataclass(frozen=True)
@@ -80,6 +106,7 @@ class _Item:
     source: Source
     clip: Clip
     seconds: float  # reading time
+    warnings: list[str] = dataclasses.field(default_factory=list)
 
 
 def run_identity(params, config, method: str) -> dict[str, str]:
@@ -103,15 +130,26 @@ def reconstruct_archive(
     method: str = methods.DEFAULT_METHOD,
     progress: Callable[[int], Any] | None = None,
     devices: Sequence[jax.Device] | None = None,
+    limits: L.Limits | None = None,
 ) -> dict[str, Any]:
     """Reconstruct every clip of ``input`` into ``output`` with ``method`` (a registered method
     name; ``config`` its config) and ``params``, resuming; returns the summary (also written
     to ``output/summary.json``).
 
-    ``progress(total)`` makes a progress bar (``.update(clips, frames)``, ``.close()``).
-    Raises :class:`~jmocap.data.archive.ArchiveError` when ``output`` holds results of other
-    parameters / config.
+    ``progress(total)`` makes a progress bar (``.update(clips, frames)``, ``.close()``);
+    ``limits`` bound what the input may cost (default: :class:`jmocap.data.limits.Limits`).
+    Raises :class:`~jmocap.data.archive.ArchiveError` (one line) when ``input`` cannot be read
+    as a whole or holds no clip, when ``output`` is not a writable folder, is being written by
+    another run or holds results of other parameters / config; :class:`Interrupted` (or
+    ``KeyboardInterrupt``) after a signal, once the finished results and ``summary.json`` are
+    written.
     """
+    with L.use(limits):
+        return _reconstruct_archive(input, output, params, config, options, method=method,
+                                    progress=progress, devices=devices)
+
+
+def _reconstruct_archive(input, output, params, config, options, *, method, progress, devices):
     t0 = time.perf_counter()
     identity = run_identity(params, config, method)
     settings = {
@@ -126,11 +164,17 @@ def reconstruct_archive(
         devices=devices,
     )
     run = {"ok": 0, "failed": 0, "frames": 0}
-    with (
-        open_sources(input, image_size=options.image_size, exclude=output) as sources,
-        ResultWriter(output, settings) as writer,
-        ThreadPoolExecutor(1, thread_name_prefix="jmocap-write") as io,
-    ):
+    interrupted: BaseException | None = None
+    with contextlib.ExitStack() as stack:
+        sources = stack.enter_context(open_sources(input, image_size=options.image_size, exclude=output))
+        if not sources:  # before the output folder is made
+            raise ArchiveError(
+                f"{input}: no clips found"
+                + (f" ({len(sources.skipped)} files skipped, e.g. {sources.skipped[0]['path']}: "
+                   f"{sources.skipped[0]['reason']})" if getattr(sources, "skipped", None) else "")
+            )
+        writer = stack.enter_context(ResultWriter(stack.enter_context(_output_folder(output)), settings))
+        io = stack.enter_context(ThreadPoolExecutor(1, thread_name_prefix="jmocap-write"))
         todo = [s for s in sources if not writer.done(s.name, bvh=options.bvh)]
         skipped = len(sources) - len(todo)
         if options.max_clips is not None:
@@ -152,6 +196,13 @@ def reconstruct_archive(
             if bar is not None:
                 bar.update(1)
 
+        def record_failure_safely(source: Source, error: BaseException, seconds: float, **extra):
+            # a failure must be recorded even when the message cannot be (e.g. a full disk)
+            try:
+                record_failure(source, error, seconds, **extra)
+            except OSError as e:
+                raise ArchiveError(f"{writer.root}: cannot write the manifest: {e}") from None
+
         def write_result(it: _Item, res: dict[str, np.ndarray], share: float):
             t = time.perf_counter()
             clip, src = it.clip, it.source
@@ -161,9 +212,9 @@ def reconstruct_archive(
                 arrays = result_arrays(
                     clip, res, method=method, height_m=height, mass_kg=model.total_mass,
                     forces_estimated=engine.method.estimates_forces, identity=identity, source=src.where,
-                    assumed=assumed_fields(clip),
+                    assumed=assumed_fields(clip), warnings=it.warnings,
                 )
-                extra = {}
+                extra = {"warnings": it.warnings} if it.warnings else {}
                 if res.get("certified") is not None:  # per-frame QP certificates (e.g. ``pip``)
                     extra["uncertified_frames"] = int(np.sum(~np.asarray(res["certified"], bool)))
                 if res.get("diagnostics") is not None:  # a solver's per-clip report (e.g. ``trajopt``)
@@ -188,9 +239,13 @@ def reconstruct_archive(
             try:
                 results = engine.run_group([it.clip for it in group])
             except Exception as e:  # noqa: BLE001
-                share = (time.perf_counter() - t) / len(group)
-                for it in group:
-                    submit(record_failure, it.source, e, it.seconds + share, frames=it.clip.num_frames)
+                if len(group) > 1:  # find the culprit: each clip alone, so only it fails
+                    for it in group:
+                        compute([it])
+                    return
+                share = time.perf_counter() - t
+                submit(record_failure, group[0].source, e, group[0].seconds + share,
+                       frames=group[0].clip.num_frames)
                 return
             share = (time.perf_counter() - t) / len(group)
             for it, res in zip(group, results, strict=True):
@@ -198,25 +253,31 @@ def reconstruct_archive(
 
         pending: dict[tuple[int, ...], list[_Item]] = {}
         capacity = options.pool or 16 * engine.group_size
-        for src, clip, seconds in _read_ahead(todo, config, depth=engine.group_size):
-            if isinstance(clip, BaseException):
-                submit(record_failure, src, clip, seconds)
-                continue
-            plan = engine.plan(clip)
-            group = pending.setdefault(plan, [])
-            group.append(_Item(src, clip, seconds))
-            if len(group) == engine.group_size:
-                compute(pending.pop(plan))
-            elif sum(map(len, pending.values())) > capacity:  # bounded memory: run the fullest
-                compute(pending.pop(max(pending, key=lambda k: len(pending[k]))))
-        for plan in sorted(pending, key=lambda k: (len(k), k)):
-            compute(pending[plan])
+        try:
+            with _signals_raise():
+                for src, got, seconds in _read_ahead(todo, config, depth=engine.group_size):
+                    if isinstance(got, BaseException):
+                        submit(record_failure_safely, src, got, seconds)
+                        continue
+                    clip, warnings = got
+                    plan = engine.plan(clip)
+                    group = pending.setdefault(plan, [])
+                    group.append(_Item(src, clip, seconds, warnings))
+                    if len(group) == engine.group_size:
+                        compute(pending.pop(plan))
+                    elif sum(map(len, pending.values())) > capacity:  # bounded memory: run the fullest
+                        compute(pending.pop(max(pending, key=lambda k: len(pending[k]))))
+                for plan in sorted(pending, key=lambda k: (len(k), k)):
+                    compute(pending[plan])
+        except (KeyboardInterrupt, Interrupted) as e:
+            interrupted = e  # write what is computed, then the summary, then re-raise
         while inflight:
             inflight.popleft().result()  # re-raises what could not even be recorded
         if bar is not None:
             bar.close()
         names = [s.name for s in sources]
         entries = [writer.entries[n] for n in names if n in writer.entries]
+        skipped_files = list(getattr(sources, "skipped", []))
     elapsed = time.perf_counter() - t0
     ok = [e for e in entries if e["status"] == "ok"]
     summary = {
@@ -236,13 +297,71 @@ def reconstruct_archive(
             "frames_per_s": round(run["frames"] / elapsed, 2) if elapsed > 0 else None,
         },
         "failures": [{"name": e["name"], "error": e.get("error")} for e in entries if e["status"] != "ok"][:100],
+        "warnings": sum(bool(e.get("warnings")) for e in ok),
+        "skipped_files": len(skipped_files),
+        "skipped": skipped_files[:100],
+        "interrupted": None if interrupted is None else (
+            "SIGINT" if isinstance(interrupted, KeyboardInterrupt) else signal.Signals(interrupted.signum).name
+        ),
         "devices": [str(d) for d in engine.devices],
         "options": {**dataclasses.asdict(options), "image_size": settings["image_size"]},
         "params_sha256": identity["params_sha256"],
         "version": jmocap.__version__,
     }
     atomic_write(Path(output) / SUMMARY, (json.dumps(summary, indent=2) + "\n").encode())
+    if interrupted is not None:
+        raise interrupted
     return summary
+
+
+@contextlib.contextmanager
+def _output_folder(output):
+    """The output folder, created, checked writable and locked for the run (a second run on it
+    fails at once); a killed run's temporary files in it are removed. Raises ArchiveError."""
+    root = Path(output)
+    if root.exists() and not root.is_dir():
+        raise ArchiveError(f"{root}: the output exists and is not a folder")
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        lock = open(root / ".jmocap.lock", "a+b")  # noqa: SIM115 - held for the run
+    except OSError as e:
+        raise ArchiveError(f"{root}: cannot write to the output folder: {e.strerror or e}") from None
+    try:
+        try:
+            import fcntl
+        except ImportError:  # not POSIX: no lock
+            fcntl = None
+        if fcntl is not None:
+            try:
+                fcntl.flock(lock.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                raise ArchiveError(f"{root}: another jmocap run is writing to this folder") from None
+        remove_stale_temporaries(root)
+        if not os.access(root, os.W_OK | os.X_OK):
+            raise ArchiveError(f"{root}: cannot write to the output folder (permission denied)")
+        yield root
+    finally:
+        lock.close()
+
+
+@contextlib.contextmanager
+def _signals_raise():
+    """SIGTERM raises :class:`Interrupted` in the main thread for the block (SIGINT already
+    raises KeyboardInterrupt); outside the main thread nothing changes."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Interrupted(signum)
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 def _read_ahead(sources: Sequence[Source], config, depth: int):
@@ -253,10 +372,10 @@ def _read_ahead(sources: Sequence[Source], config, depth: int):
         t = time.perf_counter()
         try:
             clip = src.load()
-            check_clip(clip, config, src.where)
-        except Exception as e:  # noqa: BLE001 - recorded as the clip's failure
-            clip = e
-        return clip, time.perf_counter() - t
+            got = (clip, check_clip(clip, config, src.where))
+        except Exception as e:  # noqa: BLE001 - recorded as the clip's failure (RecursionError too)
+            got = e
+        return got, time.perf_counter() - t
 
     with ThreadPoolExecutor(1, thread_name_prefix="jmocap-read") as ex:
         queue: deque = deque()
@@ -272,11 +391,19 @@ def _read_ahead(sources: Sequence[Source], config, depth: int):
 
 def _message(error: BaseException, where: str) -> str:
     """A failure message that names the file (readers' errors already do)."""
-    text = str(error)
-    if isinstance(error, FormatError | ReconstructionError) or text.startswith(where):
+    text = " ".join(str(error).split())  # one line
+    if isinstance(error, FormatError | ReconstructionError | ArchiveError) and where.split("[")[0] in text:
+        return text
+    if text.startswith(where):
         return text
     if isinstance(error, FileNotFoundError):
-        return f"{where}: file not found: {error}"
+        return f"{where}: file not found: {error.filename or text}"
+    if isinstance(error, PermissionError):
+        return f"{where}: permission denied: {error.filename or text}"
+    if isinstance(error, MemoryError):
+        return f"{where}: out of memory while reading or reconstructing the clip"
+    if isinstance(error, FormatError | ReconstructionError | ArchiveError):
+        return f"{where}: {text}"
     return f"{where}: {type(error).__name__}: {text}"
 
 
@@ -294,4 +421,4 @@ def _write_bvh(write_bvh, root: Path, name: str, model: Model, q: np.ndarray, fp
     return rel
 
 
-__all__ = ["BatchOptions", "check_clip", "reconstruct_archive", "run_identity"]
+__all__ = ["BatchOptions", "Interrupted", "check_clip", "reconstruct_archive", "run_identity"]

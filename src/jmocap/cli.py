@@ -51,7 +51,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jmocap`` script; returns the exit status."""
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:  # before a command had its own handling in place
+        print(f"\njmocap {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 # =========================================================================================
@@ -350,8 +354,25 @@ def _reconstruct(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-clips", type=int, metavar="N", help="process at most N clips this run")
     p.add_argument("--cache-dir", default=_xla_cache_dir(), metavar="DIR",
                    help="persistent XLA compilation cache ('' for none; default %(default)s)")
+    p.add_argument("--limit", action="append", metavar="NAME=VALUE", default=[],
+                   help="raise or lower a limit on the input (repeatable; sizes take K/M/G): "
+                        + ", ".join(f"{k}={v}" for k, v in _limit_defaults().items())
+                        + " (docs/formats.md, 'Limits')")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.epilog = (
+        "exit status: 0 every clip has a result; 1 some clips failed (listed in manifest.jsonl and "
+        "summary.json); 2 bad arguments, or an input / output that cannot be used at all; 130 / 143 "
+        "stopped by SIGINT / SIGTERM (finished results and summary.json are written)."
+    )
     p.set_defaults(func=cmd_reconstruct)
+
+
+def _limit_defaults() -> dict[str, int]:
+    import dataclasses
+
+    from jmocap.data.limits import Limits
+
+    return dataclasses.asdict(Limits())
 
 
 def set_host_devices(n: int) -> bool:
@@ -392,10 +413,11 @@ def cmd_reconstruct(args) -> int:
 
 def run_reconstruct(args) -> int:
     """``jmocap reconstruct``: 0 when every clip has a result, 1 when some failed, 2 on bad
-    arguments."""
+    arguments or an unusable input / output, 130 / 143 after SIGINT / SIGTERM."""
     import jax
 
-    from jmocap.batch import BatchOptions, reconstruct_archive
+    from jmocap.batch import BatchOptions, Interrupted, reconstruct_archive
+    from jmocap.data.limits import Limits
     from jmocap.progress import progress_bar
     from jmocap.weights import check_params, load_run_params
 
@@ -407,16 +429,25 @@ def run_reconstruct(args) -> int:
         method = "kinematic" if args.kinematic_only else (args.method or _default_method())
         params, config = load_run_params(args.params, args.config, method)
         check_params(params, config, method)
+        limits = Limits.parse(getattr(args, "limit", None))
+        if min(args.chunk, args.bucket, args.batch) < 1 or (args.max_clips is not None and args.max_clips < 0):
+            raise ValueError("--chunk, --bucket and --batch must be >= 1, --max-clips >= 0")
         options = BatchOptions(
             chunk=args.chunk, bucket=args.bucket, batch=args.batch, image_size=args.image_size,
             bvh=args.bvh, max_clips=args.max_clips,
         )
         summary = reconstruct_archive(
             args.input, args.output, params, config, options, method=method,
-            progress=progress_bar("reconstruct", not args.quiet),
+            progress=progress_bar("reconstruct", not args.quiet), limits=limits,
         )
-    except (FileNotFoundError, ValueError, RuntimeError) as e:  # ArchiveError is a ValueError
-        print(f"jmocap reconstruct: {e}", file=sys.stderr)
+    except (KeyboardInterrupt, Interrupted) as e:
+        status = e.exit_status if isinstance(e, Interrupted) else 130
+        print(f"\njmocap reconstruct: interrupted ({'SIGINT' if status == 130 else 'SIGTERM'}); finished results "
+              f"and summary.json are in {args.output}; run the same command again to resume", file=sys.stderr)
+        return status
+    except (OSError, ValueError, RuntimeError) as e:  # ArchiveError is a ValueError
+        msg = " ".join(str(e).split()) or type(e).__name__
+        print(f"jmocap reconstruct: {msg}", file=sys.stderr)
         return 2
     r = summary["run"]
     print(
@@ -427,6 +458,11 @@ def run_reconstruct(args) -> int:
     )
     for f in summary["failures"][:10]:
         print(f"  failed: {f['error']}", file=sys.stderr)
+    if summary.get("warnings"):
+        print(f"  {summary['warnings']} clips reconstructed with warnings (manifest.jsonl 'warnings')", file=sys.stderr)
+    if summary.get("skipped_files"):
+        print(f"  {summary['skipped_files']} files are not clips and were skipped (summary.json 'skipped')",
+              file=sys.stderr)
     return 0 if summary["failed"] == 0 and summary["pending"] == 0 else 1
 
 

@@ -27,6 +27,8 @@ intrinsics         float64    (4,)          fx, fy, cx, cy
 image_size         int64      (2,)          width, height
 extrinsics         float64    (4, 4)        world -> camera
 assumed            str        ()            JSON list of values that were defaults, not data
+warnings           str        ()            JSON list of what was implausible but usable in the
+                                            input (jmocap.data.validate; also in the manifest)
 config             str        ()            JSON of the method's config
 params_sha256,     str        ()            identity of the weights, the character file and
 model_sha256,                               the package version
@@ -128,6 +130,7 @@ def result_arrays(
     identity: dict[str, str],
     source: str,
     assumed: Sequence[str] = (),
+    warnings: Sequence[str] = (),
 ) -> dict[str, np.ndarray]:
     """The arrays of a ``jmocap-result-1`` file (see the module docstring)."""
     extr = ClipInputs.from_clip(clip).extrinsics  # the clip's, or the default camera
@@ -150,6 +153,7 @@ def result_arrays(
         "image_size": np.asarray(clip.image_size, np.int64),
         "extrinsics": np.asarray(extr, np.float64),
         "assumed": np.array(json.dumps(list(assumed))),
+        "warnings": np.array(json.dumps(list(warnings))),
     }
     out.update({k: np.array(v) for k, v in identity.items()})
     return out

@@ -31,7 +31,6 @@ same bytes and the same ``sha256``.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import os
 import tarfile
@@ -40,8 +39,7 @@ from collections.abc import Iterator
 from pathlib import Path, PurePosixPath
 from typing import Any
 
-import numpy as np
-
+from jmocap.data import limits as L
 from jmocap.data.clip import Clip, ClipFormatError, clip_from_arrays, clip_to_arrays
 from jmocap.io import atomic_write, npz_bytes
 
@@ -73,6 +71,8 @@ def _parse_manifest(text: str, where: str) -> list[dict[str, Any]]:
             raise ArchiveError(f"{where}: line {i + 1} is not valid JSON: {err}") from None
         if not isinstance(e, dict) or "name" not in e or "status" not in e:
             raise ArchiveError(f"{where}: line {i + 1} must be an object with 'name' and 'status'")
+        if not isinstance(e["name"], str) or not e["name"]:
+            raise ArchiveError(f"{where}: line {i + 1}: field 'name' must be a non-empty string, got {e['name']!r}")
         if last and not complete:
             break  # complete JSON but no newline: treat as interrupted too
         entries.append(e)
@@ -191,6 +191,13 @@ class ArchiveWriter:
         self.close()
 
 
+def _json_or_error(data: bytes, where: str):
+    try:
+        return json.loads(data)
+    except (ValueError, RecursionError) as e:
+        raise ArchiveError(f"{where}: not valid JSON: {e}") from None
+
+
 def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
@@ -208,6 +215,17 @@ class Archive:
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
+        self._kind = None
+        try:
+            self._open()
+        except ArchiveError:
+            self.close()
+            raise
+        except (OSError, zipfile.BadZipFile, tarfile.TarError, EOFError, UnicodeDecodeError, KeyError) as e:
+            self.close()
+            raise ArchiveError(f"{self.path}: cannot read the archive: {type(e).__name__}: {e}") from None
+
+    def _open(self) -> None:
         if self.path.is_dir():
             self._kind = "dir"
             mpath = self.path / MANIFEST
@@ -216,7 +234,7 @@ class Archive:
             text = mpath.read_text(encoding="utf-8")
             self._prefix = PurePosixPath("")
             meta = self.path / ARCHIVE_META
-            self.settings = json.loads(meta.read_text()) if meta.exists() else None
+            self.settings = _json_or_error(meta.read_bytes(), str(meta)) if meta.exists() else None
         elif self._looks_like(self.path) == "zip":
             self._kind = "zip"
             self._zip = zipfile.ZipFile(self.path)
@@ -224,7 +242,7 @@ class Archive:
             self._prefix = self._find_prefix(names)
             text = self._zip.read(str(self._prefix / MANIFEST)).decode("utf-8")
             meta = str(self._prefix / ARCHIVE_META)
-            self.settings = json.loads(self._zip.read(meta)) if meta in names else None
+            self.settings = _json_or_error(self._zip.read(meta), f"{self.path}:{meta}") if meta in names else None
         elif self._looks_like(self.path) == "tar":
             self._kind = "tar"
             self._tar = tarfile.open(self.path)
@@ -232,10 +250,14 @@ class Archive:
             self._prefix = self._find_prefix(names)
             text = self._tar.extractfile(str(self._prefix / MANIFEST)).read().decode("utf-8")
             meta = str(self._prefix / ARCHIVE_META)
-            self.settings = json.loads(self._tar.extractfile(meta).read()) if meta in names else None
+            self.settings = (
+                _json_or_error(self._tar.extractfile(meta).read(), f"{self.path}:{meta}") if meta in names else None
+            )
         else:
             raise ArchiveError(f"{self.path}: not an archive folder, .zip or .tar file")
         where = f"{self.path}:{self._prefix / MANIFEST}" if self._kind != "dir" else str(self.path / MANIFEST)
+        if len(text) > L.current().max_file_bytes:
+            raise L.LimitError(f"{where}: over the limit max_file_bytes (--limit max_file_bytes=...)")
         self.manifest = list(latest(_parse_manifest(text, where)).values())
 
     @staticmethod
@@ -272,9 +294,33 @@ class Archive:
         return [e["name"] for e in self.ok]
 
     def _read(self, rel: str) -> bytes:
+        """The bytes of the archive's file ``rel`` (a manifest's ``file``), which must stay
+        inside the archive and within ``max_file_bytes`` (:mod:`jmocap.data.limits`)."""
+        where = f"{self.path}:{rel}"
+        if not isinstance(rel, str) or not rel:
+            raise ArchiveError(f"{self.path}:{MANIFEST}: field 'file' must be a file name, got {rel!r}")
+        pure = PurePosixPath(rel.replace("\\", "/"))
+        if pure.is_absolute() or ".." in pure.parts or Path(rel).is_absolute():
+            raise ArchiveError(f"{where}: field 'file' points outside the archive (not read)")
         if self._kind == "dir":
-            return (self.path / rel).read_bytes()
-        member = str(self._prefix / rel)
+            path = self.path / rel
+            if not path.resolve().is_relative_to(self.path.resolve()):
+                raise ArchiveError(f"{where}: field 'file' points outside the archive (a link; not read)")
+            L.check_file_size(path, where)
+            return path.read_bytes()
+        member = str(self._prefix / pure)
+        if self._kind == "zip":
+            size = self._zip.getinfo(member).file_size
+        else:
+            info = self._tar.getmember(member)
+            if not info.isfile():
+                raise ArchiveError(f"{self.path}: member {member!r} is not a file")
+            size = info.size
+        if size > L.current().max_file_bytes:
+            raise L.LimitError(
+                f"{where}: {size} bytes, over the limit max_file_bytes = {L.current().max_file_bytes} "
+                f"(--limit max_file_bytes=...)"
+            )
         if self._kind == "zip":
             return self._zip.read(member)
         f = self._tar.extractfile(member)
@@ -290,18 +336,19 @@ class Archive:
         return self._load(entry, verify)
 
     def _load(self, entry, verify):
-        where = f"{self.path}:{entry['file']}"
+        where = f"{self.path}:{entry.get('file')}"
         try:
-            data = self._read(entry["file"])
+            data = self._read(entry.get("file"))
         except (KeyError, FileNotFoundError):
             raise ArchiveError(f"{where}: listed in the manifest but missing") from None
         if verify and entry.get("sha256") and _sha256(data) != entry["sha256"]:
             raise ArchiveError(f"{where}: sha256 does not match the manifest")
         try:
-            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-                arrays = {k: npz[k] for k in npz.files}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-            raise ClipFormatError(f"{where}: not a readable .npz file: {e}") from None
+            arrays = L.load_npz(data, where)
+        except L.LimitError:
+            raise
+        except Exception as e:  # noqa: BLE001 - BadZipFile, zlib.error, truncated members, ...
+            raise ClipFormatError(f"{where}: not a readable .npz file: {type(e).__name__}: {e}") from None
         return clip_from_arrays(arrays, where)
 
     def __iter__(self) -> Iterator[Clip]:
@@ -313,10 +360,10 @@ class Archive:
             yield self._load(e, verify)
 
     def close(self) -> None:
-        if self._kind == "zip":
-            self._zip.close()
-        elif self._kind == "tar":
-            self._tar.close()
+        for attr in ("_zip", "_tar"):
+            f = getattr(self, attr, None)
+            if f is not None:
+                f.close()
 
     def __enter__(self) -> Archive:
         return self
