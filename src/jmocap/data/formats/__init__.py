@@ -25,8 +25,10 @@ One module per format family (details, joint orders and examples in ``docs/forma
 * jmocap clips (``.npz``, see :mod:`jmocap.data.clip`).
 
 Shared by all of them: :mod:`~jmocap.data.formats.keypoints` (:class:`Keypoints2D`),
-:mod:`~jmocap.data.formats.person` (:func:`select_person`) and
-:mod:`~jmocap.data.formats.common` (errors, :func:`clean_keypoints`). This module dispatches on
+:mod:`~jmocap.data.formats.person` (:func:`select_person`),
+:mod:`~jmocap.data.formats.common` (errors, JSON input, :func:`clean_keypoints`,
+:func:`safe_name`) and :mod:`~jmocap.data.formats.safe_pickle` (pickled ``.npz`` members read
+without running anything: :func:`load_npz_pickled`). This module dispatches on
 the path: :func:`read_keypoints`, :func:`read_clip`.
 
 Confidence handling, the same for every reader: a joint is *missing* (confidence 0, x = y = 0)
@@ -52,7 +54,7 @@ from jmocap.data.formats.amass import SMPL_JOINT_NAMES, Joints3D, read_amass_joi
 from jmocap.data.formats.arrays import read_keypoint_array
 from jmocap.data.formats.camera_file import read_camera_json, sidecar_path, write_camera_json
 from jmocap.data.formats.coco import read_coco_json, write_coco_results
-from jmocap.data.formats.common import _READ_ERRORS, _ferr, _load_json, clean_keypoints
+from jmocap.data.formats.common import _READ_ERRORS, _ferr, _load_json, clean_keypoints, safe_name
 from jmocap.data.formats.keypoints import DEFAULT_FPS, Keypoints2D
 from jmocap.data.formats.mmpose import read_mmpose_json, write_mmpose_json
 from jmocap.data.formats.openpose import (
@@ -62,6 +64,12 @@ from jmocap.data.formats.openpose import (
     write_openpose_folder,
 )
 from jmocap.data.formats.person import Candidate, select_person
+from jmocap.data.formats.safe_pickle import (
+    MAX_PICKLE_DEPTH,
+    RestrictedUnpickler,
+    load_npz_pickled,
+    plain_data,
+)
 from jmocap.data.formats.videopose3d import (
     H36M_CAMERAS,
     H36M_FPS,
@@ -205,6 +213,7 @@ __all__ = [
     "DEFAULT_FPS",
     "H36M_CAMERAS",
     "H36M_FPS",
+    "MAX_PICKLE_DEPTH",
     "SMPL_JOINT_NAMES",
     "Candidate",
     "ClipFormatError",
@@ -213,8 +222,11 @@ __all__ = [
     "Keypoints2D",
     "OPENPOSE_FILE_RE",
     "OPENPOSE_VERSION",
+    "RestrictedUnpickler",
     "clean_keypoints",
     "iter_videopose3d",
+    "load_npz_pickled",
+    "plain_data",
     "read_amass_joints",
     "read_camera_json",
     "read_clip",
@@ -224,6 +236,7 @@ __all__ = [
     "read_mmpose_json",
     "read_openpose_folder",
     "read_videopose3d",
+    "safe_name",
     "select_person",
     "sidecar_path",
     "write_camera_json",

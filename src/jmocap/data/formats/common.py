@@ -5,15 +5,23 @@
   *missing* (confidence 0, x = y = 0) when its confidence is 0 or negative, when any of x, y,
   confidence is NaN/inf, or when its coordinates are exactly (0, 0) (the "no detection" value of
   OpenPose and COCO); confidences are clipped to [0, 1];
-* frame numbering: gaps in a source's frame numbers become all-missing frames (:func:`_fill_gaps`).
+* JSON input (:func:`_load_json`): size, nesting depth and parse errors become format errors;
+  values are checked to be of their JSON type (:func:`_number`, :func:`_nested_numbers`,
+  :func:`_flat_triplets`): a number is a JSON number (not a string like ``"30"``, not ``true``);
+* frame numbering: gaps in a source's frame numbers become all-missing frames (:func:`_fill_gaps`),
+  within :mod:`jmocap.data.limits`;
+* :func:`safe_name`: a clip name usable as one file-name component.
 
 The underscore names are shared by the format modules of this package only.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import math
 import pickle
+import re
 import zipfile
 import zlib
 from collections.abc import Sequence
@@ -22,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from jmocap.data import limits
 from jmocap.data.clip import FormatError
 from jmocap.io import atomic_write
 
@@ -72,13 +81,129 @@ def _ferr(path, msg, frame=None, field=None) -> FormatError:
 
 
 def _load_json(path: Path, frame=None):
+    """Parse the JSON file ``path``; every problem is a :class:`FormatError` naming the file
+    (and ``frame`` when given).
+
+    Checked: the file size (:func:`jmocap.data.limits.check_file_size`), UTF-8, valid JSON,
+    nesting within ``max_json_depth`` (:func:`jmocap.data.limits.check_json_depth`; nesting too
+    deep for Python's parser says so too), integers within Python's digit limit, memory.
+    """
+    where = f"{path}: frame {frame}" if frame is not None else str(path)
+    limits.check_file_size(path, where)
     try:
         with open(path, encoding="utf-8") as f:
-            return json.load(f)
+            data = json.load(f)
     except json.JSONDecodeError as e:
         raise _ferr(path, f"not valid JSON: {e}", frame) from None
     except UnicodeDecodeError as e:
         raise _ferr(path, f"not a UTF-8 text file: {e}", frame) from None
+    except RecursionError:
+        lim = limits.current().max_json_depth
+        raise limits.LimitError(
+            f"{where}: JSON nested too deeply to parse, over the limit max_json_depth = {lim} "
+            "(--limit max_json_depth=...)"
+        ) from None
+    except (ValueError, OverflowError) as e:  # e.g. an integer of more than 4300 digits
+        raise _ferr(path, f"not readable JSON: {e}", frame) from None
+    except MemoryError:
+        raise _ferr(path, "not readable JSON: out of memory while parsing", frame) from None
+    limits.check_json_depth(data, where)
+    return data
+
+
+def _is_number(v) -> bool:
+    """Whether ``v`` is a JSON number (``int`` or ``float``; a numpy number from a pickle or an
+    ``.npz`` counts too), not a ``bool``, a string or anything else."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(
+        v, (bool, np.bool_)
+    )
+
+
+def _type_name(v) -> str:
+    """What a wrong value is, for messages: ``"a string '30'"``, ``"a boolean"``, ``"a list"``."""
+    if isinstance(v, (bool, np.bool_)):
+        return f"a boolean ({str(bool(v)).lower()})"
+    if isinstance(v, str):
+        return f"a string {v[:40]!r}"
+    if v is None:
+        return "null"
+    names = {dict: "an object", list: "a list", int: "an integer", float: "a number"}
+    return names.get(type(v), f"a {type(v).__name__}")
+
+
+def _number(
+    v,
+    path,
+    field,
+    frame=None,
+    *,
+    integer: bool = False,
+    positive: bool = False,
+    nonnegative: bool = False,
+    finite: bool = True,
+    maximum: float | None = None,
+) -> float | int:
+    """``v`` checked to be a JSON number (:func:`_is_number`): ``int`` when ``integer`` (an
+    integral float such as ``640.0`` is accepted), else ``float``. Also checked on request:
+    finite (default), > 0, >= 0, <= ``maximum``. A :class:`FormatError` naming file, frame and
+    field otherwise."""
+    if not _is_number(v):
+        raise _ferr(path, f"must be a number, got {_type_name(v)}", frame, field)
+    try:
+        x = float(v)
+    except OverflowError:
+        x = math.inf if v > 0 else -math.inf
+    if finite and not math.isfinite(x):
+        raise _ferr(path, f"must be a finite number, got {v!r}", frame, field)
+    if integer:
+        if not math.isfinite(x) or x != math.floor(x):
+            raise _ferr(path, f"must be an integer, got {v!r}", frame, field)
+        x = int(v)
+    if positive and not x > 0:
+        raise _ferr(path, f"must be > 0, got {v!r}", frame, field)
+    if nonnegative and not x >= 0:
+        raise _ferr(path, f"must be >= 0, got {v!r}", frame, field)
+    if maximum is not None and x > maximum:
+        raise _ferr(path, f"must be at most {maximum:g}, got {v!r}", frame, field)
+    return x
+
+
+def _list_depth(values) -> int:
+    """How many list levels ``values`` has along its first elements (``[[1, 2]]`` -> 2)."""
+    d = 0
+    while isinstance(values, list) and values:
+        values, d = values[0], d + 1
+    return d + (1 if isinstance(values, list) else 0)
+
+
+def _nested_numbers(values, ndim, path, field, frame=None, *, allow_null=False) -> np.ndarray:
+    """A JSON array of arrays (``ndim`` levels, every row the same length) of numbers ->
+    float64 ndarray. Every leaf must be a JSON number (:func:`_is_number`; ``null`` -> NaN with
+    ``allow_null``); an integer too large for a float becomes inf. A :class:`FormatError`
+    naming file, frame and field otherwise."""
+
+    def walk(v, d):
+        if d == ndim:
+            if v is None and allow_null:
+                return math.nan
+            if not _is_number(v):
+                raise _ferr(
+                    path, f"must contain only numbers, found {_type_name(v)}", frame, field
+                )
+            try:
+                return float(v)
+            except OverflowError:
+                return math.inf if v > 0 else -math.inf
+        if not isinstance(v, list):
+            what = "a list of numbers" if d + 1 == ndim else "a list of lists"
+            raise _ferr(path, f"must be {what}, found {_type_name(v)}", frame, field)
+        return [walk(x, d + 1) for x in v]
+
+    rows = walk(values, 0)
+    try:
+        return np.array(rows, dtype=np.float64)
+    except ValueError:
+        raise _ferr(path, "has rows of different lengths", frame, field) from None
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
@@ -88,10 +213,11 @@ def _atomic_write_text(path: Path, text: str) -> None:
 
 
 def _flat_triplets(values, J, path, frame, fieldname, layout_desc) -> np.ndarray:
-    """A flat [x, y, c] * J list -> (J, 3); FormatError on bad length or non-numbers."""
+    """A flat ``[x, y, c] * J`` list -> (J, 3) float64; each value a JSON number or ``null``
+    (NaN: a missing joint). FormatError on a non-list, a bad length or other values."""
     if not isinstance(values, list):
         raise _ferr(
-            path, f"must be a list of numbers, got {type(values).__name__}", frame, fieldname
+            path, f"must be a list of numbers, got {_type_name(values)}", frame, fieldname
         )
     if len(values) != 3 * J:
         raise _ferr(
@@ -100,26 +226,34 @@ def _flat_triplets(values, J, path, frame, fieldname, layout_desc) -> np.ndarray
             frame,
             fieldname,
         )
-    try:
-        arr = np.array([np.nan if v is None else v for v in values], dtype=np.float64)
-    except (TypeError, ValueError):
-        raise _ferr(path, "contains values that are not numbers", frame, fieldname) from None
-    return arr.reshape(J, 3)
+    return _nested_numbers(values, 1, path, fieldname, frame, allow_null=True).reshape(J, 3)
 
 
 def _fill_gaps(
     frame_ids: Sequence[int], per_frame: Sequence[Any], path, empty: Any
 ) -> tuple[np.ndarray, list[Any]]:
-    """Sort by frame id, fill missing ids with ``empty``; FormatError on duplicates."""
-    order = np.argsort(np.asarray(frame_ids), kind="stable")
-    ids = [int(frame_ids[i]) for i in order]
+    """Sort by frame number and fill missing numbers with ``empty``.
+
+    Checked: every frame number is a non-negative integer (``int`` or numpy integer, not a
+    ``bool``), none appears twice, consecutive numbers are at most ``max_frame_gap`` apart
+    (:func:`jmocap.data.limits.check_frame_gap`) and the filled clip has at most
+    ``max_frames`` frames (:func:`jmocap.data.limits.check_frames`). FormatError otherwise.
+    """
+    for f in frame_ids:
+        if not isinstance(f, (int, np.integer)) or isinstance(f, (bool, np.bool_)):
+            raise _ferr(path, f"frame number {f!r} is not an integer")
+        if f < 0:
+            raise _ferr(path, f"frame number {f} is negative", int(f))
+    ids = sorted(int(f) for f in frame_ids)
     for a, b in zip(ids, ids[1:], strict=False):
         if a == b:
             raise _ferr(path, f"frame number {a} appears more than once", a)
+        limits.check_frame_gap(a, b, str(path))
     if not ids:
         return np.zeros(0, np.int64), []
+    limits.check_frames(ids[-1] - ids[0] + 1, str(path))
     full = list(range(ids[0], ids[-1] + 1))
-    by_id = {int(frame_ids[i]): per_frame[i] for i in order}
+    by_id = {int(f): x for f, x in zip(frame_ids, per_frame, strict=True)}
     return np.asarray(full, np.int64), [by_id.get(f, empty) for f in full]
 
 
@@ -128,4 +262,27 @@ def _check_nonempty(path, T):
         raise _ferr(path, "contains no frames")
 
 
-__all__ = ["clean_keypoints"]
+_UNSAFE_CHARS = re.compile(r"[\x00-\x1f\x7f/\\]")
+
+
+def safe_name(name: str, max_bytes: int = 100) -> str:
+    """``name`` made usable as one file-name component, deterministically.
+
+    Spaces, ``/``, ``\\``, NUL and other control characters become ``_``; leading dots become
+    ``_`` (no hidden files, no ``.`` / ``..``); an empty name becomes ``_``; characters that
+    cannot be UTF-8 encoded (lone surrogates) become ``?``. A name longer than ``max_bytes``
+    bytes of UTF-8 is cut (at a character boundary) and given ``-`` and the first 8 hex digits
+    of the SHA-256 of the whole name, so two long names that share a prefix stay different.
+    """
+    text = str(name).encode("utf-8", "replace").decode("utf-8")
+    text = _UNSAFE_CHARS.sub("_", text.replace(" ", "_"))
+    stripped = text.lstrip(".")
+    text = "_" * (len(text) - len(stripped)) + stripped or "_"
+    raw = text.encode("utf-8")
+    if len(raw) > max_bytes:
+        digest = hashlib.sha256(str(name).encode("utf-8", "surrogatepass")).hexdigest()[:8]
+        text = raw[: max_bytes - 9].decode("utf-8", "ignore") + "-" + digest
+    return text
+
+
+__all__ = ["clean_keypoints", "safe_name"]

@@ -1,22 +1,35 @@
 """VideoPose3D 2D files ``data_2d_<dataset>_<detector>.npz`` (Human3.6M cameras attached).
 
-:func:`read_videopose3d`, :func:`iter_videopose3d`, :func:`write_videopose3d`. The only reader
-of the package that unpickles (``positions_2d`` is a pickled dict): that happens in
-:func:`_load_videopose3d` and nowhere else.
+:func:`read_videopose3d`, :func:`iter_videopose3d`, :func:`write_videopose3d`. ``positions_2d``
+and ``metadata`` are pickled dicts; :func:`_load_videopose3d` reads them with the restricted
+unpickler of :mod:`jmocap.data.formats.safe_pickle` (arrays, dicts, lists, strings and numbers
+only: a pickle that names anything else, e.g. ``os.system``, is refused, never run).
 """
 
 from __future__ import annotations
 
 import os
 import re
+import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
+from jmocap.data import limits
 from jmocap.data.clip import FormatError
-from jmocap.data.formats.common import _READ_ERRORS, _check_nonempty, _ferr, clean_keypoints
+from jmocap.data.formats.common import (
+    _READ_ERRORS,
+    _check_nonempty,
+    _ferr,
+    _nested_numbers,
+    _number,
+    _type_name,
+    clean_keypoints,
+    safe_name,
+)
 from jmocap.data.formats.keypoints import Keypoints2D
+from jmocap.data.formats.safe_pickle import load_npz_pickled
 from jmocap.layouts import get_layout
 
 # Human3.6M camera intrinsics (fx, fy, cx, cy) and resolution (w, h), in the order of the
@@ -50,33 +63,56 @@ _VP3D_LAYOUTS = {"h36m": "h36m17", "coco": "coco17"}
 
 
 def _load_videopose3d(path: Path):
+    """``(positions, metadata, layout)`` of a VideoPose3D file, read without running pickles.
+
+    Checked: the file and member sizes and the restricted unpickling
+    (:func:`~jmocap.data.formats.safe_pickle.load_npz_pickled`); ``positions_2d`` is a dict
+    subject -> dict action -> list of per-camera arrays (or one array); ``metadata`` a dict whose
+    ``layout_name`` is supported and whose ``num_joints`` (an integer) matches the layout.
+    """
     try:
-        with np.load(path, allow_pickle=True) as npz:
-            if "positions_2d" not in npz.files:
-                raise _ferr(
-                    path, "not a VideoPose3D 2D file (no 'positions_2d')", field="positions_2d"
-                )
-            positions = npz["positions_2d"].item()
-            metadata = npz["metadata"].item() if "metadata" in npz.files else {}
+        loaded = load_npz_pickled(path, ("positions_2d", "metadata"), str(path))
     except FormatError:
         raise
-    except _READ_ERRORS as e:
+    except (*_READ_ERRORS, zipfile.LargeZipFile) as e:
         raise _ferr(path, f"not a readable .npz file: {e}") from None
+    if "positions_2d" not in loaded:
+        raise _ferr(path, "not a VideoPose3D 2D file (no 'positions_2d')", field="positions_2d")
+    positions = loaded["positions_2d"]
+    metadata = loaded.get("metadata", {})
     if not isinstance(positions, dict):
         raise _ferr(
-            path, "must be a dict subject -> action -> [per-camera arrays]", field="positions_2d"
+            path,
+            f"must be a dict subject -> action -> [per-camera arrays], got {_type_name(positions)}",
+            field="positions_2d",
         )
+    for subject, actions in positions.items():
+        if not isinstance(actions, dict):
+            raise _ferr(
+                path,
+                f"must be a dict action -> [per-camera arrays], got {_type_name(actions)}",
+                field=f"positions_2d[{subject!r}]",
+            )
+        for action, arrays in actions.items():
+            if not isinstance(arrays, (list, tuple, np.ndarray)):
+                raise _ferr(
+                    path,
+                    f"must be a list of per-camera arrays, got {_type_name(arrays)}",
+                    field=f"positions_2d[{subject!r}][{action!r}]",
+                )
     if not isinstance(metadata, dict):
-        raise _ferr(path, "must be a dict", field="metadata")
+        raise _ferr(path, f"must be a dict, got {_type_name(metadata)}", field="metadata")
     name = metadata.get("layout_name", "h36m")
-    if name not in _VP3D_LAYOUTS:
+    if not isinstance(name, str) or name not in _VP3D_LAYOUTS:
         raise _ferr(
             path,
             f"layout {name!r} is not supported (supported: {sorted(_VP3D_LAYOUTS)})",
             field="metadata.layout_name",
         )
     layout = get_layout(_VP3D_LAYOUTS[name])
-    nj = metadata.get("num_joints", layout.num_joints)
+    nj = _number(
+        metadata.get("num_joints", layout.num_joints), path, "metadata.num_joints", integer=True
+    )
     if nj != layout.num_joints:
         raise _ferr(
             path,
@@ -86,7 +122,70 @@ def _load_videopose3d(path: Path):
     return positions, metadata, layout
 
 
-def _vp3d_entry(path, positions, metadata, layout, subject, action, cam) -> Keypoints2D:
+def _cameras(arrays) -> int:
+    """How many camera sequences an action entry holds (a list per camera, or one array)."""
+    return len(arrays) if isinstance(arrays, (list, tuple)) else 1
+
+
+def _vp3d_names(positions) -> dict[tuple, tuple[str, str | None]]:
+    """``(subject, action, camera) -> (name, renamed_from)`` for every sequence, in file order.
+
+    The name is ``<subject>_<action>_<camera>`` made a safe file-name component
+    (:func:`~jmocap.data.formats.common.safe_name`). Names are unique within the file, compared
+    without case (so their result files cannot collide on a case-insensitive file system):
+    a later sequence whose name is taken gets ``~2``, ``~3``, ... (the first suffix not taken
+    by any name of the file), and ``renamed_from`` is the name it would have had.
+    """
+    keys, natural = [], []
+    for subject, actions in positions.items():
+        for action, arrays in actions.items():
+            for cam in range(_cameras(arrays)):
+                keys.append((subject, action, cam))
+                natural.append(safe_name(f"{subject}_{action}_{cam}"))
+    taken = {n.casefold() for n in natural}
+    used: set[str] = set()
+    out = {}
+    for key, name in zip(keys, natural, strict=True):
+        final, k = name, 1
+        while final.casefold() in used or (final != name and final.casefold() in taken):
+            k += 1
+            final = f"{name}~{k}"
+        used.add(final.casefold())
+        out[key] = (final, None if final == name else name)
+    return out
+
+
+def _vp3d_video(path, metadata, subject):
+    """``(found, image_size, fps)`` from ``metadata["video_metadata"][subject]`` (custom
+    videos); ``found`` is False when the file has no entry for ``subject`` (then both are
+    ``None``). Checked: ``video_metadata`` is a dict of dicts, ``w``, ``h`` are positive
+    integers and ``fps`` a positive finite number (each optional)."""
+    vm = metadata.get("video_metadata", {})
+    if not isinstance(vm, dict):
+        raise _ferr(path, f"must be a dict, got {_type_name(vm)}", field="metadata.video_metadata")
+    if subject not in vm:
+        return False, None, None
+    entry = vm[subject]
+    field = f"metadata.video_metadata[{subject!r}]"
+    if not isinstance(entry, dict):
+        raise _ferr(path, f"must be a dict with 'w', 'h', got {_type_name(entry)}", field=field)
+    size = fps = None
+    w, h = entry.get("w"), entry.get("h")
+    if w is not None and h is not None:
+        size = tuple(
+            _number(v, path, f"{field}.{k}", integer=True, positive=True, maximum=_MAX_SIDE)
+            for k, v in (("w", w), ("h", h))
+        )
+    if entry.get("fps") is not None:
+        fps = _number(entry["fps"], path, f"{field}.fps", positive=True)
+    return True, size, fps
+
+
+# the largest image side accepted (pixel coordinates are float32 later on)
+_MAX_SIDE = 2**31 - 1
+
+
+def _vp3d_entry(path, positions, metadata, layout, subject, action, cam, names) -> Keypoints2D:
     arrays = positions[subject][action]
     if not isinstance(arrays, (list, tuple)):
         arrays = [arrays]
@@ -97,37 +196,45 @@ def _vp3d_entry(path, positions, metadata, layout, subject, action, cam) -> Keyp
             field="positions_2d",
         )
     fieldname = f"positions_2d[{subject!r}][{action!r}][{cam}]"
-    a = np.asarray(arrays[cam])
+    a = arrays[cam]
+    if isinstance(a, list):  # nested lists instead of an array
+        a = _nested_numbers(a, 3, path, fieldname)
     if (
-        a.ndim != 3
+        not isinstance(a, np.ndarray)
+        or a.ndim != 3
         or a.shape[1] != layout.num_joints
         or a.shape[2] not in (2, 3)
         or a.dtype.kind not in "fiu"
     ):
+        what = f"shape {a.shape} ({a.dtype})" if isinstance(a, np.ndarray) else _type_name(a)
         raise _ferr(
             path,
-            f"has shape {a.shape} ({a.dtype}), expected (T, {layout.num_joints}, 2|3)",
+            f"has {what}, expected an array (T, {layout.num_joints}, 2|3) of numbers",
             field=fieldname,
         )
     _check_nonempty(path, a.shape[0])
+    limits.check_frames(a.shape[0], f"{path}: {fieldname}")
     kp = clean_keypoints(a)
-    fps = None
-    size = intr = None
-    vm = metadata.get("video_metadata", {})
-    if isinstance(vm, dict) and subject in vm and isinstance(vm[subject], dict):
-        w, h = vm[subject].get("w"), vm[subject].get("h")
-        if w and h:
-            size = (int(w), int(h))
-        fps = vm[subject].get("fps")
-    elif (
-        metadata.get("layout_name", "h36m") == "h36m"
+    found, size, fps = _vp3d_video(path, metadata, subject)
+    intr = None
+    if (
+        not found
+        and metadata.get("layout_name", "h36m") == "h36m"
         and re.fullmatch(r"S\d+", str(subject))
         and cam < 4
     ):
         _, intr, size = H36M_CAMERAS[cam]
         intr = np.asarray(intr, np.float64)
         fps = H36M_FPS
-    name = f"{subject}_{action}_{cam}".replace(" ", "_").replace("/", "_")
+    name, renamed_from = names[(subject, action, cam)]
+    meta = {
+        "format": "videopose3d",
+        "subject": str(subject),
+        "action": str(action),
+        "camera": int(cam),
+    }
+    if renamed_from is not None:
+        meta["renamed_from"] = renamed_from
     return Keypoints2D(
         keypoints=kp,
         layout=layout.name,
@@ -137,12 +244,7 @@ def _vp3d_entry(path, positions, metadata, layout, subject, action, cam) -> Keyp
         image_size=size,
         intrinsics=intr,
         source=str(path),
-        meta={
-            "format": "videopose3d",
-            "subject": str(subject),
-            "action": str(action),
-            "camera": int(cam),
-        },
+        meta=meta,
     )
 
 
@@ -150,20 +252,23 @@ def iter_videopose3d(path: str | os.PathLike) -> Iterator[Keypoints2D]:
     """Every (subject, action, camera) sequence of a VideoPose3D 2D file, in file order.
 
     ``positions_2d`` is a pickled dict ``subject -> action -> [array (T, J, 2) per camera]``
-    (loaded with ``allow_pickle=True``: read trusted files only); ``metadata`` has
+    (read by a restricted unpickler that rebuilds only arrays, dicts, lists, strings and
+    numbers: :mod:`jmocap.data.formats.safe_pickle`); ``metadata`` has
     ``layout_name`` (``h36m`` -> ``h36m17``; ``coco`` -> ``coco17``), ``num_joints``,
     ``keypoints_symmetry`` and, for ``prepare_data_2d_custom.py`` files, ``video_metadata``
     (``{video: {"w", "h"}}``). For Human3.6M subjects (``S1`` ... ``S11``, h36m layout) the
     four published Human3.6M camera calibrations (:data:`H36M_CAMERAS`) and 50 fps are
     attached; custom videos get their image size from ``video_metadata``.
+
+    Names are ``<subject>_<action>_<camera>``, made safe as a file-name component and unique
+    within the file (a later sequence whose name is taken gets ``~2``, ... and
+    ``meta["renamed_from"]``; see :func:`_vp3d_names`).
     """
     path = Path(path)
     positions, metadata, layout = _load_videopose3d(path)
-    for subject, actions in positions.items():
-        for action, arrays in actions.items():
-            n = len(arrays) if isinstance(arrays, (list, tuple)) else 1
-            for cam in range(n):
-                yield _vp3d_entry(path, positions, metadata, layout, subject, action, cam)
+    names = _vp3d_names(positions)
+    for subject, action, cam in names:
+        yield _vp3d_entry(path, positions, metadata, layout, subject, action, cam, names)
 
 
 def read_videopose3d(
@@ -197,10 +302,9 @@ def read_videopose3d(
 
     subject = choose(positions.keys(), subject, "subject")
     action = choose(positions[subject].keys(), action, "action")
-    arrays = positions[subject][action]
-    n = len(arrays) if isinstance(arrays, (list, tuple)) else 1
-    camera = choose(range(n), camera, "camera")
-    return _vp3d_entry(path, positions, metadata, layout, subject, action, camera)
+    camera = choose(range(_cameras(positions[subject][action])), camera, "camera")
+    names = _vp3d_names(positions)
+    return _vp3d_entry(path, positions, metadata, layout, subject, action, camera, names)
 
 
 def write_videopose3d(
@@ -237,7 +341,7 @@ def write_videopose3d(
         "metadata": np.array(metadata, dtype=object),
     }
     # the format is a pickled dict by definition (VideoPose3D's own files are): written with
-    # numpy's savez; jmocap reads such files only with an explicit opt-in (docs/formats.md)
+    # numpy's savez; jmocap reads it back with its restricted unpickler (safe_pickle.py)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_writer(path) as f:
