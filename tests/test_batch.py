@@ -477,3 +477,118 @@ def test_openpose_folder_as_the_whole_input(xla_cache, first_run, params, clips,
     r = np.load(tmp_path / "out" / "video01.npz")
     np.testing.assert_allclose(r["intrinsics"], clips["openpose"].intrinsics)  # from the sidecar
     shutil.rmtree(folder)
+
+
+# ---------------------------------------------------------------------------------------
+# hostile or clumsy input (issue 16): what the batch engine guarantees
+# ---------------------------------------------------------------------------------------
+
+
+def test_warnings_are_recorded_in_manifest_and_result(first_run):
+    out, summary, _ = first_run
+    m = read_manifest(out)
+    w = m["undetected_frames"]["warnings"]
+    assert any("frames 3-5" in x for x in w), w  # the three undetected frames, as a range
+    assert any("extrinsics" in x for x in m["bare"]["warnings"])  # the assumed camera
+    res = load_result(out / m["undetected_frames"]["file"])
+    assert res["warnings"] == w
+    assert summary["warnings"] >= 2
+
+
+def test_a_failing_batch_fails_only_its_culprit(params, input_folder, tmp_path, monkeypatch):
+    """An error inside a batch (here: the engine refuses clip 'medium') is retried clip by clip:
+    only the culprit fails, its batch-mates get their results."""
+    from jmocap.pipeline import Reconstructor
+
+    real = Reconstructor.run_group
+
+    def run_group(self, clips):
+        if any(c.name == "c1" for c in clips):  # 'medium' is synth(1, ...): name c1
+            raise RuntimeError("the engine failed on c1")
+        return real(self, clips)
+
+    monkeypatch.setattr(Reconstructor, "run_group", run_group)
+    s = reconstruct_archive(input_folder, tmp_path / "out", params, SMALL, BatchOptions(chunk=8, bucket=8, batch=8))
+    m = read_manifest(tmp_path / "out")
+    assert {n for n, e in m.items() if e["status"] == "ok"} == GOOD - {"medium"}
+    assert "the engine failed on c1" in m["medium"]["error"] and "medium" in m["medium"]["error"]
+    assert s["failed"] == len(BAD) + 1
+
+
+def test_results_do_not_depend_on_batch_mates(first_run, params, clips, tmp_path):
+    """A clip reconstructed alone gives the same bytes of motion as in its batch of the first
+    run (so a resume, which regroups clips, is exact)."""
+    out1, _, _ = first_run
+    src = tmp_path / "in"
+    src.mkdir()
+    save_clip(src / "long.npz", clips["long"])
+    reconstruct_archive(src, tmp_path / "out", params, SMALL, OPTS)
+    a, b = load_result(tmp_path / "out" / "long.npz"), load_result(out1 / "long.npz")
+    for k in ("q", "qd", "tau", "grf", "contact_prob", "target_q", "keypoints3d"):
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_output_folder_problems_are_one_line_errors(params, input_folder, tmp_path):
+    from jmocap.data.archive import ArchiveError
+
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ArchiveError, match="exists and is not a folder"):
+        reconstruct_archive(input_folder, tmp_path / "file", params, SMALL, OPTS)
+    out = tmp_path / "out"
+    out.mkdir()
+    stale = [out / ".jmocap-abc123.tmp", out / ".short.npz.k2j3.tmp", out / "sub" / ".jmocap-x.npz"]
+    for p in stale:
+        p.parent.mkdir(exist_ok=True)
+        p.write_bytes(b"left by a killed run")
+    import fcntl
+
+    with open(out / ".jmocap.lock", "a+b") as lock:
+        fcntl.flock(lock.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(ArchiveError, match="another jmocap run"):
+            reconstruct_archive(input_folder, out, params, SMALL, OPTS)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "notes.json").write_text('{"author": "me"}')
+    with pytest.raises(ArchiveError, match="no clips found.*notes.json"):
+        reconstruct_archive(empty, tmp_path / "out2", params, SMALL, OPTS)
+    assert not (tmp_path / "out2").exists()  # nothing made for an input without clips
+    old = os.umask(0o027)
+    try:
+        reconstruct_archive(input_folder, out, params, SMALL, OPTS)
+    finally:
+        os.umask(old)
+    assert not any(p.exists() for p in stale)  # removed when the run started
+    assert (out / "short.npz").stat().st_mode & 0o777 == 0o640  # 0o666 less the umask
+    assert (out / "manifest.jsonl").is_file()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, pytest.param(signal.SIGINT, marks=pytest.mark.slow)])
+def test_a_signal_ends_the_run_with_a_summary(xla_cache, first_run, params, tmp_path, sig):
+    """SIGTERM / SIGINT: the results computed so far are written, summary.json says the run was
+    interrupted, the exit status is 128 + the signal, no traceback; the rerun completes."""
+    src, out = tmp_path / "in", tmp_path / "out"
+    src.mkdir()
+    n = 24
+    for i in range(n):
+        save_clip(src / f"k{i:02d}.npz", synth(20 + i, 6 + i % 3))
+    cmd, env = cli(tmp_path, params, src, out, "--batch", "2", "--host-devices", "1", cache=xla_cache)
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if (out / "manifest.jsonl").exists() and any(e["status"] == "ok" for e in read_manifest(out).values()):
+                break
+            time.sleep(0.005)
+        assert proc.poll() is None, f"the run ended before the signal: {proc.stderr.read()}"
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + sig, err
+    assert "Traceback" not in err and "interrupted" in err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["interrupted"] == sig.name and 0 < summary["ok"] < n
+    rerun = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    assert json.loads((out / "summary.json").read_text())["interrupted"] is None

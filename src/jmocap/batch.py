@@ -62,7 +62,7 @@ from jmocap.results import (
 from jmocap.weights import model_sha256, params_sha256
 
 
-class Interrupted(Exception):  # noqa: N818 - a signal, not an error
+class Interrupted(BaseException):  # noqa: N818 - a signal, not an error (not caught by `except Exception`)
     """A run stopped by a signal (SIGINT: exit status 130, SIGTERM: 143)."""
 
     def __init__(self, signum: int):

@@ -74,7 +74,7 @@ _SERIES = {
 _STATIC = {"intrinsics": (4,), "image_size": (2,), "extrinsics": (4, 4)}
 _SCALARS = ("fps", "height_m", "mass_kg")
 _STRINGS = ("format", "name", "source", "method", "layout", "version", "config", "params_sha256",
-            "model_sha256", "assumed")
+            "model_sha256", "assumed", "warnings")
 _BOOLS = ("forces_estimated",)
 
 
@@ -246,11 +246,15 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
             if a.shape != () or a.dtype.kind != "b":
                 raise FormatError(f"{path}: field {key!r} must be a boolean, got shape {a.shape} ({a.dtype})")
             out[key] = bool(a)
-    if out["assumed"] is not None:
-        try:
-            out["assumed"] = list(json.loads(out["assumed"]))
-        except (json.JSONDecodeError, TypeError):
-            raise FormatError(f"{path}: field 'assumed' must be a JSON list, got {out['assumed']!r}") from None
+    for key in ("assumed", "warnings"):
+        if out[key] is not None:
+            try:
+                value = json.loads(out[key])
+                if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+                    raise TypeError
+            except (json.JSONDecodeError, TypeError):
+                raise FormatError(f"{path}: field {key!r} must be a JSON list of strings, got {out[key]!r}") from None
+            out[key] = value
     for key, a in data.items():
         if key not in out:
             out[key] = a

@@ -23,7 +23,7 @@ keypoints                 a visible coordinate beyond 1e6 px; fewer   a quarter 
                           than 2 usable frames, or fewer than 5 % of  points outside the image;
                           frames usable (a usable frame has at least  frames without a usable
                           5 joints with confidence >= 0.05)           detection (listed)
-name                      a path component longer than 250 bytes
+name                      a path component longer than 251 bytes
                           (UTF-8) or not a file name
 ========================  ==========================================  =========================
 
@@ -62,7 +62,7 @@ USABLE_JOINTS = 5
 MIN_USABLE_FRAMES = 2
 MIN_USABLE_SHARE = 0.05
 OUTSIDE_IMAGE_WARN_SHARE = 0.25
-MAX_NAME_BYTES = 250
+MAX_NAME_BYTES = 251
 
 
 def frame_ranges(frames: np.ndarray, limit: int = 8) -> str:
@@ -88,7 +88,7 @@ def check_name(name: str, where: str) -> None:
         if n > MAX_NAME_BYTES:
             raise FormatError(
                 f"{where}: field 'name': the component {p[:40]!r}... is {n} bytes long; result file names "
-                f"must stay under 255 bytes (at most {MAX_NAME_BYTES} for the name); rename the file"
+                f"must stay under 255 bytes (at most {MAX_NAME_BYTES} for the name, plus the suffix); rename the file"
             )
 
 
