@@ -81,7 +81,8 @@ def check_name(name: str, where: str) -> None:
     """A clip name must make file names under OUTPUT: relative, no ``.``/``..`` components, no
     NUL, each component at most :data:`MAX_NAME_BYTES` bytes (room for ``.npz`` / ``.bvh``)."""
     parts = PurePosixPath(name).parts
-    if not parts or name.startswith("/") or "\\" in name or "\0" in name or any(p in (".", "..") for p in parts):
+    if (not parts or name.startswith("/") or "\\" in name or "\0" in name or any(p in (".", "..") for p in parts)
+            or PurePosixPath(name).as_posix() != name):
         raise FormatError(f"{where}: field 'name': {name!r} cannot be a file name under the output folder")
     for p in parts:
         n = len(p.encode("utf-8", "surrogateescape"))
