@@ -174,15 +174,30 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
     series must share T); numeric scalars become ``float``, 0-d strings ``str``, ``assumed`` a
     list; unknown extra keys are passed through as arrays. Raises
     :class:`jmocap.data.FormatError` (a ``ValueError``) naming the file and field.
+
+    Read through :func:`jmocap.data.limits.load_npz` (file, member and declared array sizes
+    within the limits, no pickle); the time series have at most ``max_frames`` frames; the JSON
+    fields (``diagnostics``, ``assumed``, ``warnings``) are parsed within ``max_json_depth``.
     """
+    from jmocap.data import limits
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"result file not found: {path}")
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {k: npz[k] for k in npz.files}
+        data = limits.load_npz(path, str(path))
+    except FormatError:
+        raise
     except Exception as e:  # not a zip, truncated, pickled objects, ...
         raise FormatError(f"{path}: not a readable .npz result file ({type(e).__name__}: {e})") from None
+
+    def parse_json(key, text):
+        try:
+            value = json.loads(text)
+        except (ValueError, RecursionError) as e:  # bad JSON, huge integers, deep nesting
+            raise FormatError(f"{path}: field {key!r} is not readable JSON ({type(e).__name__}: {e})") from None
+        limits.check_json_depth(value, f"{path}: field {key!r}")
+        return value
 
     out: dict[str, Any] = {k: None for k in (*_SERIES, *_STATIC, *_SCALARS, *_STRINGS, *_BOOLS)}
     for key in ("q", "fps"):
@@ -205,6 +220,7 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
         out[key] = a
     if T == 0:
         raise FormatError(f"{path}: field 'q' has no frames")
+    limits.check_frames(T, f"{path}: field 'q'")
     out["certified"] = None
     if "certified" in data:
         a = data["certified"]
@@ -213,12 +229,11 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
         out["certified"] = a
     out["diagnostics"] = None
     if "diagnostics" in data:
-        try:
-            diag = json.loads(str(data["diagnostics"]))
-            if not isinstance(diag, dict) or not all(isinstance(v, (int, float)) for v in diag.values()):
-                raise ValueError("not an object of numbers")
-        except ValueError as e:
-            raise FormatError(f"{path}: field 'diagnostics' is not a JSON object of numbers ({e})") from None
+        diag = parse_json("diagnostics", str(data["diagnostics"]))
+        if not isinstance(diag, dict) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in diag.values()
+        ):
+            raise FormatError(f"{path}: field 'diagnostics' is not a JSON object of numbers")
         out["diagnostics"] = diag
     for key, shape in _STATIC.items():
         if key in data:
@@ -248,12 +263,9 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
             out[key] = bool(a)
     for key in ("assumed", "warnings"):
         if out[key] is not None:
-            try:
-                value = json.loads(out[key])
-                if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-                    raise TypeError
-            except (json.JSONDecodeError, TypeError):
-                raise FormatError(f"{path}: field {key!r} must be a JSON list of strings, got {out[key]!r}") from None
+            value = parse_json(key, out[key])
+            if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+                raise FormatError(f"{path}: field {key!r} must be a JSON list of strings, got {out[key][:80]!r}")
             out[key] = value
     for key, a in data.items():
         if key not in out:
