@@ -63,6 +63,8 @@ GT_FIELDS = ("gt_q", "gt_qd", "gt_keypoints3d", "gt_contacts", "gt_tau", "gt_grf
 _GT_SHAPES = {"gt_contacts": (NUM_CONTACTS,), "gt_grf": (NUM_CONTACTS, 3), "gt_residual": (6,),
               "gt_foot_force": (2, 3), "gt_cop": (2, 3), "gt_free_moment": (2,)}
 _ARRAY_FIELDS = ("keypoints", "intrinsics", "image_size", "extrinsics") + GT_FIELDS
+#: the largest image width / height accepted (pixels; int32, like the arrays downstream)
+MAX_IMAGE_SIDE = 2**31 - 1
 
 
 class FormatError(ValueError):
@@ -171,13 +173,65 @@ def _first_bad_frame(bad: np.ndarray) -> int:
 
 
 def _as_array(values, key, dtype, where):
+    """``values[key]`` as an array of ``dtype``. Only numbers are converted: an array (or
+    list) of strings, booleans, Python objects or complex numbers is a :class:`ClipFormatError`
+    naming the field (numpy would turn ``"30"`` into 30.0 and ``True`` into 1.0 silently)."""
     v = values[key]
     try:
-        return np.asarray(v, dtype=dtype)
+        a = np.asarray(v)
+        if a.dtype.kind not in "iuf":
+            raise TypeError(f"it holds {_KIND_NAMES.get(a.dtype.kind, str(a.dtype))}, not numbers")
+        return np.asarray(a, dtype=dtype)
     except (TypeError, ValueError) as e:
         raise ClipFormatError(
             f"{where}: field {key!r} cannot be read as {np.dtype(dtype)}: {e}"
         ) from None
+
+
+_KIND_NAMES = {
+    "b": "booleans",
+    "U": "strings",
+    "S": "byte strings",
+    "O": "Python objects",
+    "c": "complex numbers",
+    "V": "structured records",
+    "M": "dates",
+    "m": "time deltas",
+}
+
+
+def _scalar_number(v, key, where) -> float:
+    """A scalar field (``fps``, ``height_m``, ``mass_kg``) as a float: an ``int``, ``float``,
+    numpy integer / floating scalar or 0-d numeric array; a string, a boolean or anything else
+    is a :class:`ClipFormatError` (``float("30")`` and ``float(True)`` would succeed)."""
+    ok = isinstance(v, (int, float, np.integer, np.floating)) or (
+        isinstance(v, np.ndarray) and v.ndim == 0 and v.dtype.kind in "iuf"
+    )
+    if not ok or isinstance(v, (bool, np.bool_)):
+        raise ClipFormatError(
+            f"{where}: field {key!r} must be a number, got {type(v).__name__} {v!r:.40}"
+        )
+    try:
+        return float(v)
+    except OverflowError:
+        raise ClipFormatError(f"{where}: field {key!r} is too large: {v!r:.40}") from None
+
+
+def _extrinsics_problem(E: np.ndarray) -> str | None:
+    """What is wrong with a (4, 4) float matrix as extrinsics (None when it is a rigid transform
+    ``[R t; 0 0 0 1]``, R a rotation: orthonormal within 1e-4, determinant +1)."""
+    if E.shape != (4, 4):
+        return f"must have shape (4, 4), got {E.shape}"
+    if not np.isfinite(E).all():
+        return "has non-finite values"
+    R = E[:3, :3]
+    if (
+        not np.allclose(E[3], [0, 0, 0, 1], atol=1e-6)
+        or not np.allclose(R @ R.T, np.eye(3), atol=1e-4)
+        or np.linalg.det(R) < 0
+    ):
+        return "must be a rigid transform [R t; 0 0 0 1] with R a rotation"
+    return None
 
 
 def _check_finite(arr, key, where, per_frame=True):
@@ -204,24 +258,14 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
             f"{where}: field 'layout' is {layout!r}, not one of {sorted(LAYOUTS)}"
         )
     out["layout"] = layout = layout.lower()
-    try:
-        fps = float(values.get("fps"))
-    except (TypeError, ValueError):
-        raise ClipFormatError(
-            f"{where}: field 'fps' must be a number, got {values.get('fps')!r}"
-        ) from None
+    fps = _scalar_number(values.get("fps"), "fps", where)
     if not (np.isfinite(fps) and fps > 0):
         raise ClipFormatError(f"{where}: field 'fps' must be finite and > 0, got {fps}")
     out["fps"] = fps
     for key in ("height_m", "mass_kg"):
         v = values.get(key)
         if v is not None:
-            try:
-                v = float(v)
-            except (TypeError, ValueError):
-                raise ClipFormatError(
-                    f"{where}: field {key!r} must be a number, got {v!r}"
-                ) from None
+            v = _scalar_number(v, key, where)
             if not (np.isfinite(v) and v > 0):
                 raise ClipFormatError(f"{where}: field {key!r} must be finite and > 0, got {v}")
             out[key] = v
@@ -232,7 +276,7 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
         raise ClipFormatError(f"{where}: field 'meta' must be a dict, got {type(meta).__name__}")
     try:
         json.dumps(meta)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, RecursionError) as e:
         raise ClipFormatError(f"{where}: field 'meta' is not JSON-serialisable: {e}") from None
     out["meta"] = meta
 
@@ -247,6 +291,9 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
     T = kp.shape[0]
     if T == 0:
         raise ClipFormatError(f"{where}: field 'keypoints' has T = 0 frames (an empty clip)")
+    from jmocap.data import limits  # (imports this module)
+
+    limits.check_frames(T, f"{where}: field 'keypoints'")
     _check_finite(kp, "keypoints", where)
     conf = kp[..., 2]
     bad = (conf < 0) | (conf > 1)
@@ -280,27 +327,17 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
             f"{where}: field 'image_size' must have shape (2,) (width, height), got {size.shape}"
         )
     _check_finite(size, "image_size", where, per_frame=False)
-    if not (np.all(size > 0) and np.all(size == np.round(size))):
+    if not (np.all(size > 0) and np.all(size == np.round(size)) and np.all(size <= MAX_IMAGE_SIDE)):
         raise ClipFormatError(
-            f"{where}: field 'image_size' must be positive integers, got {size.tolist()}"
+            f"{where}: field 'image_size' must be positive integers up to {MAX_IMAGE_SIDE}, "
+            f"got {size.tolist()}"
         )
     out["image_size"] = size.astype(np.int64)
     if values.get("extrinsics") is not None:
         E = _as_array(values, "extrinsics", np.float64, where)
-        if E.shape != (4, 4):
-            raise ClipFormatError(
-                f"{where}: field 'extrinsics' must have shape (4, 4), got {E.shape}"
-            )
-        _check_finite(E, "extrinsics", where, per_frame=False)
-        R = E[:3, :3]
-        if (
-            not np.allclose(E[3], [0, 0, 0, 1], atol=1e-6)
-            or not np.allclose(R @ R.T, np.eye(3), atol=1e-4)
-            or np.linalg.det(R) < 0
-        ):
-            raise ClipFormatError(
-                f"{where}: field 'extrinsics' must be a rigid transform [R t; 0 0 0 1] with R a rotation"
-            )
+        problem = _extrinsics_problem(E)
+        if problem is not None:
+            raise ClipFormatError(f"{where}: field 'extrinsics' {problem}")
         out["extrinsics"] = E
 
     # ground truth
@@ -401,7 +438,13 @@ def _str_field(data, key, where, required=True):
 
 
 def clip_from_arrays(data, where: str) -> Clip:
-    """Build a Clip from a mapping of .npz arrays; errors name ``where`` (usually the file)."""
+    """Build a Clip from a mapping of .npz arrays; errors name ``where`` (usually the file).
+
+    Checked here, besides everything :class:`Clip` checks: ``format``, ``name``, ``layout``,
+    ``meta`` are string scalars (``meta`` a JSON object within ``max_json_depth``); ``fps``,
+    ``height_m``, ``mass_kg`` are numeric scalars (a string ``"30"`` or a boolean is refused,
+    not converted); the array fields hold numbers (not strings, booleans, objects or complex
+    numbers)."""
     fmt = _str_field(data, "format", where)
     if fmt != FORMAT:
         raise ClipFormatError(f"{where}: field 'format' is {fmt!r}, expected {FORMAT!r}")
@@ -412,26 +455,32 @@ def clip_from_arrays(data, where: str) -> Clip:
     for key in ("fps", "keypoints", "intrinsics", "image_size"):
         if key not in data:
             raise ClipFormatError(f"{where}: missing field {key!r}")
-    fps = data["fps"]
-    if fps.shape != ():
-        raise ClipFormatError(f"{where}: field 'fps' must be a scalar, got shape {fps.shape}")
-    values["fps"] = fps.item()
+    for key in ("fps", "height_m", "mass_kg"):
+        if key in data:
+            v = np.asarray(data[key])
+            if v.shape != ():
+                raise ClipFormatError(f"{where}: field {key!r} must be a scalar, got shape {v.shape}")
+            if v.dtype.kind not in "iuf":
+                raise ClipFormatError(
+                    f"{where}: field {key!r} must be a number, got {v.dtype} {str(v)[:40]!r}"
+                )
+            values[key] = v.item()
     for key in _ARRAY_FIELDS:
         if key in data:
             values[key] = data[key]
-    for key in ("height_m", "mass_kg"):
-        if key in data:
-            if data[key].shape != ():
-                raise ClipFormatError(
-                    f"{where}: field {key!r} must be a scalar, got shape {data[key].shape}"
-                )
-            values[key] = data[key].item()
     meta_s = _str_field(data, "meta", where, required=False)
     if meta_s is not None:
+        from jmocap.data import limits  # (imports this module)
+
         try:
             meta = json.loads(meta_s)
         except json.JSONDecodeError as e:
             raise ClipFormatError(f"{where}: field 'meta' is not valid JSON: {e}") from None
+        except (ValueError, RecursionError) as e:  # huge integers, nesting Python cannot parse
+            raise ClipFormatError(
+                f"{where}: field 'meta' is not readable JSON: {type(e).__name__}: {e}"
+            ) from None
+        limits.check_json_depth(meta, f"{where}: field 'meta'")
         if not isinstance(meta, dict):
             raise ClipFormatError(
                 f"{where}: field 'meta' must be a JSON object, got {type(meta).__name__}"
@@ -439,23 +488,26 @@ def clip_from_arrays(data, where: str) -> Clip:
         values["meta"] = meta
     try:
         return Clip(**values)
-    except ClipFormatError as e:
+    except FormatError as e:  # ClipFormatError, or LimitError (too many frames)
         # re-word "clip 'name'" into the file name
         msg = str(e)
         prefix = f"clip {values['name']!r}: "
         if msg.startswith(prefix):
             msg = msg[len(prefix) :]
-        raise ClipFormatError(f"{where}: {msg}") from None
+        raise type(e)(f"{where}: {msg}") from None
 
 
 def load_clip(path: str | os.PathLike) -> Clip:
-    """Load and validate a ``jmocap-clip-1`` .npz. Raises :class:`ClipFormatError` on any problem."""
+    """Load and validate a ``jmocap-clip-1`` .npz. Raises :class:`ClipFormatError` on any
+    problem (:class:`~jmocap.data.limits.LimitError` when the file or one of its arrays is over
+    the limits: read through :func:`jmocap.data.limits.load_npz`, never unpickled)."""
+    from jmocap.data import limits  # (imports this module)
+
     path = Path(path)
     where = str(path)
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {k: npz[k] for k in npz.files}
-    except FileNotFoundError:
+        data = limits.load_npz(path, where)
+    except (FileNotFoundError, FormatError):
         raise
     except Exception as e:  # BadZipFile, zlib.error, truncated members, non-npz bytes ...
         raise ClipFormatError(
@@ -476,6 +528,7 @@ def is_clip_file(path: str | os.PathLike) -> bool:
 __all__ = [
     "FORMAT",
     "GT_FIELDS",
+    "MAX_IMAGE_SIDE",
     "Clip",
     "ClipFormatError",
     "FormatError",

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jmocap.data import limits
 from jmocap.data.clip import FormatError
 from jmocap.data.formats.common import _READ_ERRORS, _check_nonempty, _ferr
 
@@ -62,37 +63,43 @@ def read_amass_joints(path: str | os.PathLike) -> Joints3D:
     ``mocap_framerate`` (AMASS SMPL+H), ``mocap_frame_rate`` (AMASS SMPL-X) or ``fps``. The
     joints are returned as stored (AMASS: metres, z-up world, like jmocap). For J = 22 / 24 the
     SMPL joint names are attached (:data:`SMPL_JOINT_NAMES`); for 52 (SMPL-H) the first 22.
+    Read without pickle within :mod:`jmocap.data.limits`; the joints and the frame rate must be
+    numbers (not strings or booleans).
     """
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            files = list(npz.files)
-            key = "joints" if "joints" in files else ("Jtr" if "Jtr" in files else None)
-            if key is None:
-                raise _ferr(
-                    path,
-                    f"has no 'joints' or 'Jtr' array (arrays: {files}); AMASS SMPL parameters "
-                    "need a body model to give joints",
-                    field="joints",
-                )
-            J = np.asarray(npz[key], np.float64)
-            fkey = next(
-                (k for k in ("mocap_framerate", "mocap_frame_rate", "fps") if k in files), None
-            )
-            if fkey is None:
-                raise _ferr(
-                    path,
-                    "has no frame rate ('mocap_framerate', 'mocap_frame_rate' or 'fps')",
-                    field="mocap_framerate",
-                )
-            fps = float(npz[fkey])
+        npz = limits.load_npz(path, str(path))
     except FormatError:
         raise
-    except _READ_ERRORS as e:
+    except (*_READ_ERRORS, MemoryError) as e:
         raise _ferr(path, f"not a readable .npz file: {e}") from None
+    files = list(npz)
+    key = "joints" if "joints" in files else ("Jtr" if "Jtr" in files else None)
+    if key is None:
+        raise _ferr(
+            path,
+            f"has no 'joints' or 'Jtr' array (arrays: {files}); AMASS SMPL parameters "
+            "need a body model to give joints",
+            field="joints",
+        )
+    fkey = next((k for k in ("mocap_framerate", "mocap_frame_rate", "fps") if k in files), None)
+    if fkey is None:
+        raise _ferr(
+            path,
+            "has no frame rate ('mocap_framerate', 'mocap_frame_rate' or 'fps')",
+            field="mocap_framerate",
+        )
+    for k, want in ((key, "(T, J, 3) numbers"), (fkey, "a number")):
+        if npz[k].dtype.kind not in "iuf" or (k == fkey and npz[k].shape != ()):
+            raise _ferr(
+                path, f"has shape {npz[k].shape} ({npz[k].dtype}), expected {want}", field=k
+            )
+    J = np.asarray(npz[key], np.float64)
+    fps = float(npz[fkey])
     if J.ndim != 3 or J.shape[2] != 3:
         raise _ferr(path, f"has shape {J.shape}, expected (T, J, 3)", field=key)
     _check_nonempty(path, J.shape[0])
+    limits.check_frames(J.shape[0], f"{path}: field {key!r}")
     bad = ~np.isfinite(J)
     if bad.any():
         raise _ferr(

@@ -1,6 +1,6 @@
 """Plain keypoint arrays: ``.npy`` / ``.npz`` of (T, J, 2|3) pixels (Human3.6M-17 by default).
 
-:func:`read_keypoint_array`; read without pickle.
+:func:`read_keypoint_array`; read without pickle, within :mod:`jmocap.data.limits`.
 """
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jmocap.data.clip import FormatError
+from jmocap.data import limits
+from jmocap.data.clip import MAX_IMAGE_SIDE, FormatError
 from jmocap.data.formats.common import _READ_ERRORS, _check_nonempty, _ferr, clean_keypoints
 from jmocap.data.formats.keypoints import Keypoints2D
 from jmocap.layouts import get_layout
@@ -39,27 +40,25 @@ def read_keypoint_array(
     extras: dict[str, np.ndarray] = {}
     try:
         if path.suffix == ".npy":
-            a = np.load(path, allow_pickle=False)
+            a = limits.load_npy(path, str(path))
             fieldname = "<array>"
         else:
-            with np.load(path, allow_pickle=False) as npz:
-                files = list(npz.files)
+            npz = limits.load_npz(path, str(path))
+            files = list(npz)
+            if key is None:
+                key = next((k for k in _ARRAY_KEYS if k in files), None)
                 if key is None:
-                    key = next((k for k in _ARRAY_KEYS if k in files), None)
-                    if key is None:
-                        if len(files) != 1:
-                            raise _ferr(
-                                path, f"has arrays {files}; pass key= to choose the keypoints"
-                            )
-                        key = files[0]
-                if key not in files:
-                    raise _ferr(path, f"has no array {key!r} (arrays: {files})", field=key)
-                a = npz[key]
-                fieldname = key
-                extras = {k: npz[k] for k in ("fps", "image_size", "intrinsics") if k in files}
+                    if len(files) != 1:
+                        raise _ferr(path, f"has arrays {files}; pass key= to choose the keypoints")
+                    key = files[0]
+            if key not in files:
+                raise _ferr(path, f"has no array {key!r} (arrays: {files})", field=key)
+            a = npz[key]
+            fieldname = key
+            extras = {k: npz[k] for k in ("fps", "image_size", "intrinsics") if k in files}
     except FormatError:
         raise
-    except _READ_ERRORS as e:
+    except (*_READ_ERRORS, MemoryError) as e:
         raise _ferr(path, f"not a readable numpy file: {e}") from None
     if (
         a.ndim != 3
@@ -74,6 +73,7 @@ def read_keypoint_array(
             field=fieldname,
         )
     _check_nonempty(path, a.shape[0])
+    limits.check_frames(a.shape[0], f"{path}: field {fieldname!r}")
     if a.shape[2] == 3:
         conf = a[..., 2]
         with np.errstate(invalid="ignore"):
@@ -83,9 +83,7 @@ def read_keypoint_array(
             raise _ferr(
                 path, f"confidence {conf[f][bad[f]][0]} is far outside [0, 1]", f, fieldname
             )
-    fps = float(extras["fps"]) if "fps" in extras else None
-    size = tuple(int(v) for v in extras["image_size"]) if "image_size" in extras else None
-    intr = np.asarray(extras["intrinsics"], np.float64) if "intrinsics" in extras else None
+    fps, size, intr = _extras(path, extras)
     return Keypoints2D(
         keypoints=clean_keypoints(a),
         layout=lay.name,
@@ -97,6 +95,37 @@ def read_keypoint_array(
         source=str(path),
         meta={"format": "array"},
     )
+
+
+def _extras(path, extras: dict[str, np.ndarray]):
+    """``(fps, image_size, intrinsics)`` from an array ``.npz``'s optional entries (None when
+    absent). Checked: each holds numbers (not strings, booleans or objects); ``fps`` a finite
+    scalar > 0, ``image_size`` two positive integers (at most
+    :data:`~jmocap.data.clip.MAX_IMAGE_SIDE`), ``intrinsics`` four finite numbers."""
+    shapes = {"fps": (), "image_size": (2,), "intrinsics": (4,)}
+    for k, v in extras.items():
+        if v.dtype.kind not in "iuf" or v.shape != shapes[k]:
+            raise _ferr(
+                path, f"has shape {v.shape} ({v.dtype}), expected {shapes[k]} numbers", field=k
+            )
+        if not np.isfinite(v).all():
+            raise _ferr(path, f"has non-finite values {v.tolist()}", field=k)
+    fps = size = intr = None
+    if "fps" in extras:
+        fps = float(extras["fps"])
+        if not fps > 0:
+            raise _ferr(path, f"must be > 0, got {fps}", field="fps")
+    if "image_size" in extras:
+        s = extras["image_size"].astype(np.float64)
+        if not (np.all(s > 0) and np.all(s == np.round(s)) and np.all(s <= MAX_IMAGE_SIDE)):
+            raise _ferr(
+                path, f"must be positive integers up to {MAX_IMAGE_SIDE}, got {s.tolist()}",
+                field="image_size",
+            )
+        size = (int(s[0]), int(s[1]))
+    if "intrinsics" in extras:
+        intr = np.asarray(extras["intrinsics"], np.float64)
+    return fps, size, intr
 
 
 __all__ = ["read_keypoint_array"]

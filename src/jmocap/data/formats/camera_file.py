@@ -9,15 +9,27 @@ most detector formats do not store (:meth:`~jmocap.data.formats.keypoints.Keypoi
 from __future__ import annotations
 
 import json
-import math
 import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from jmocap.data.clip import Clip
-from jmocap.data.formats.common import _atomic_write_text, _ferr, _load_json
+from jmocap.data.clip import MAX_IMAGE_SIDE, Clip, _extrinsics_problem
+from jmocap.data.formats.common import (
+    _atomic_write_text,
+    _ferr,
+    _load_json,
+    _nested_numbers,
+    _number,
+    _type_name,
+)
+
+# keys a sidecar does not have, though a clip does: refused rather than silently ignored
+_NOT_SIDECAR_KEYS = {
+    "intrinsics": "the sidecar gives the intrinsics as 'fx', 'fy', 'cx', 'cy'",
+    "image_size": "the sidecar gives the image size as 'width', 'height'",
+}
 
 
 def sidecar_path(path: str | os.PathLike) -> Path:
@@ -33,51 +45,42 @@ def read_camera_json(path: str | os.PathLike) -> dict[str, Any]:
 
     Returns ``{"intrinsics": (4,), "image_size": (w, h), "extrinsics": (4, 4) | None,
     "fps": float | None}``.
+
+    Checked (else a :class:`FormatError` naming the file and the field): the file is a JSON
+    object; ``fx``, ``fy``, ``cx``, ``cy`` are finite JSON numbers with ``fx``, ``fy`` > 0;
+    ``width``, ``height`` positive integers (at most :data:`~jmocap.data.clip.MAX_IMAGE_SIDE`);
+    ``fps`` a finite number > 0; ``extrinsics`` a 4x4 list of numbers that is a rigid transform
+    ``[R t; 0 0 0 1]`` with R a rotation. Numbers must be JSON numbers: ``"30"`` or ``true``
+    are refused, not converted. The clip's key names ``intrinsics`` and ``image_size`` are
+    refused (a sidecar that has them means something the reader would otherwise ignore).
     """
     path = Path(path)
     data = _load_json(path)
     if not isinstance(data, dict):
-        raise _ferr(path, "a camera file must be a JSON object")
+        raise _ferr(path, f"a camera file must be a JSON object, got {_type_name(data)}")
+    for key, hint in _NOT_SIDECAR_KEYS.items():
+        if key in data:
+            raise _ferr(path, f"is not a camera sidecar key: {hint}", field=key)
+    for key in ("fx", "fy", "cx", "cy", "width", "height"):
+        if key not in data:
+            raise _ferr(path, "missing", field=key)
     out: dict[str, Any] = {}
-    try:
-        intr = [float(data[k]) for k in ("fx", "fy", "cx", "cy")]
-    except KeyError as e:
-        raise _ferr(path, "missing", field=e.args[0]) from None
-    except (TypeError, ValueError):
-        raise _ferr(path, "fx, fy, cx, cy must be numbers", field="fx") from None
-    if not all(math.isfinite(v) for v in intr) or intr[0] <= 0 or intr[1] <= 0:
-        raise _ferr(path, f"intrinsics {intr} must be finite with fx, fy > 0", field="fx")
+    intr = [_number(data[k], path, k, positive=k in ("fx", "fy")) for k in ("fx", "fy", "cx", "cy")]
     out["intrinsics"] = np.asarray(intr, np.float64)
-    try:
-        w, h = data["width"], data["height"]
-    except KeyError as e:
-        raise _ferr(path, "missing", field=e.args[0]) from None
-    if not (
-        isinstance(w, (int, float))
-        and isinstance(h, (int, float))
-        and w > 0
-        and h > 0
-        and w == int(w)
-        and h == int(h)
-    ):
-        raise _ferr(path, f"image size ({w!r}, {h!r}) must be positive integers", field="width")
-    out["image_size"] = (int(w), int(h))
+    out["image_size"] = tuple(
+        _number(data[k], path, k, integer=True, positive=True, maximum=MAX_IMAGE_SIDE)
+        for k in ("width", "height")
+    )
     E = data.get("extrinsics")
     if E is not None:
-        try:
-            E = np.asarray(E, np.float64)
-        except (TypeError, ValueError):
-            raise _ferr(path, "must be a 4x4 list of numbers", field="extrinsics") from None
-        if E.shape != (4, 4) or not np.isfinite(E).all():
-            raise _ferr(
-                path, f"must be a finite 4x4 matrix, got shape {E.shape}", field="extrinsics"
-            )
+        E = _nested_numbers(E, 2, path, "extrinsics")
+        problem = _extrinsics_problem(E)
+        if problem is not None:
+            raise _ferr(path, problem, field="extrinsics")
     out["extrinsics"] = E
     fps = data.get("fps")
     if fps is not None:
-        if not isinstance(fps, (int, float)) or not fps > 0:
-            raise _ferr(path, f"must be a positive number, got {fps!r}", field="fps")
-        fps = float(fps)
+        fps = _number(fps, path, "fps", positive=True)
     out["fps"] = fps
     return out
 

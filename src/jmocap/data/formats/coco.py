@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jmocap.data.clip import Clip
+from jmocap.data.clip import MAX_IMAGE_SIDE, Clip
 from jmocap.data.formats.common import (
     _atomic_write_text,
     _check_nonempty,
@@ -20,6 +20,8 @@ from jmocap.data.formats.common import (
     _fill_gaps,
     _flat_triplets,
     _load_json,
+    _number,
+    _type_name,
     clean_keypoints,
 )
 from jmocap.data.formats.keypoints import Keypoints2D
@@ -28,6 +30,8 @@ from jmocap.layouts import get_layout
 
 
 def _frame_index(image_ids, frame_of, path):
+    """Frame numbers of the entries' image ids: the ids themselves (integers, not booleans or
+    strings) or ``frame_of[id]`` / ``frame_of(id)``; FormatError naming the bad id."""
     if frame_of is None:
         bad = [i for i in image_ids if not isinstance(i, int) or isinstance(i, bool)]
         if bad:
@@ -41,12 +45,47 @@ def _frame_index(image_ids, frame_of, path):
     for i in image_ids:
         try:
             f = frame_of(i) if callable(frame_of) else frame_of[i]
-        except (KeyError, IndexError):
+        except (KeyError, IndexError, TypeError):
             raise _ferr(
                 path, f"image_id {i!r} is not in the frame_of mapping", field="image_id"
             ) from None
         out.append(int(f))
     return out
+
+
+def _annotation_images(images, path):
+    """From an annotation file's ``images`` list: ``({id: index}, (width, height) | None)``.
+
+    Checked: ``images`` is a list of objects whose ``id`` is an integer or a string;
+    ``width`` / ``height``, where given, are positive integers. The size is returned when every
+    image has the same one."""
+    if not isinstance(images, list):
+        raise _ferr(path, f"must be a list, got {_type_name(images)}", field="images")
+    order, sizes = {}, set()
+    for k, img in enumerate(images):
+        if not isinstance(img, dict):
+            raise _ferr(path, f"must be an object, got {_type_name(img)}", field=f"images[{k}]")
+        if "id" in img:
+            i = img["id"]
+            if isinstance(i, bool) or not isinstance(i, (int, str)):
+                raise _ferr(
+                    path, f"must be an integer or a string, got {_type_name(i)}",
+                    field=f"images[{k}].id",
+                )
+            order[i] = k
+        w, h = img.get("width"), img.get("height")
+        if w is not None and h is not None:
+            sizes.add(
+                tuple(
+                    _number(v, path, f"images[{k}].{key}", integer=True, positive=True,
+                            maximum=MAX_IMAGE_SIDE)
+                    for key, v in (("width", w), ("height", h))
+                )
+            )
+        else:
+            sizes.add(None)
+    size = sizes.pop() if len(sizes) == 1 else None
+    return order, size
 
 
 def _group_frames(path, frame_ids, cands_by_entry, fill_from_zero):
@@ -87,6 +126,10 @@ def read_coco_json(
     a function image_id -> frame number) overrides this. ``category_id`` other than 1 (person)
     is skipped. No fps, image size or camera is stored (COCO image entries' ``width``/``height``
     are used when present and all equal).
+
+    Values must have their JSON types: ``image_id``, ``category_id``, ``track_id`` integers,
+    ``score`` and the keypoints numbers (``null`` keypoint values are missing joints), else a
+    :class:`FormatError` names the file, the frame and the field.
     """
     path = Path(path)
     data = _load_json(path)
@@ -95,19 +138,9 @@ def read_coco_json(
     if isinstance(data, dict) and "annotations" in data:
         entries = data["annotations"]
         kind = "coco_annotations"
-        images = data.get("images") or []
-        if frame_of is None and images:
-            order = {
-                img["id"]: k
-                for k, img in enumerate(images)
-                if isinstance(img, dict) and "id" in img
-            }
+        order, image_size = _annotation_images(data.get("images", []), path)
+        if frame_of is None and order:
             frame_of = order
-        sizes = {(img.get("width"), img.get("height")) for img in images if isinstance(img, dict)}
-        if len(sizes) == 1:
-            w, h = sizes.pop()
-            if isinstance(w, int) and isinstance(h, int) and w > 0 and h > 0:
-                image_size = (w, h)
     elif isinstance(data, list):
         entries = data
         kind = "coco_results"
@@ -122,7 +155,8 @@ def read_coco_json(
         image_ids.append(e["image_id"])
     frames = _frame_index(image_ids, frame_of, path)
     for k, (e, f) in enumerate(zip(entries, frames, strict=True)):
-        if e.get("category_id", 1) != 1:
+        category = e.get("category_id", 1)
+        if _number(category, path, f"[{k}].category_id", f, integer=True) != 1:
             cands.append(None)
             continue
         if "keypoints" not in e:
@@ -136,19 +170,16 @@ def read_coco_json(
             score = e.get("score")
             if score is None:
                 score = float(np.nanmean(np.clip(kp[:, 2], 0, 1)))
-            try:
-                score = float(score)
-            except (TypeError, ValueError):
-                raise _ferr(
-                    path, f"entry {k}: score {score!r} is not a number", f, "score"
-                ) from None
+            score = _number(score, path, f"[{k}].score", f, finite=False)
         kp = clean_keypoints(kp)
         track = e.get("track_id")
+        if track is not None:
+            track = _number(track, path, f"[{k}].track_id", f, integer=True)
         cands.append(
             Candidate(
                 kp,
                 score if np.isfinite(score) else 0.0,
-                int(track) if isinstance(track, int) and track >= 0 else None,
+                track if track is not None and track >= 0 else None,
             )
             if (kp[:, 2] > 0).any()
             else None

@@ -164,7 +164,7 @@ def _number(
     if nonnegative and not x >= 0:
         raise _ferr(path, f"must be >= 0, got {v!r}", frame, field)
     if maximum is not None and x > maximum:
-        raise _ferr(path, f"must be at most {maximum:g}, got {v!r}", frame, field)
+        raise _ferr(path, f"must be at most {maximum}, got {v!r}", frame, field)
     return x
 
 

@@ -17,8 +17,9 @@ from typing import Any
 import numpy as np
 
 from jmocap.camera import default_intrinsics
-from jmocap.data.clip import Clip, FormatError
+from jmocap.data.clip import MAX_IMAGE_SIDE, Clip, FormatError
 from jmocap.data.formats.camera_file import read_camera_json, sidecar_path
+from jmocap.data.formats.common import _number, _type_name
 
 DEFAULT_FPS = 30.0
 
@@ -70,6 +71,10 @@ class Keypoints2D:
         centre), no extrinsics. There is no default image size: without one a
         :class:`FormatError` asks for it. Defaults that were used are listed in
         ``clip.meta["assumed"]``.
+
+        Checked: the image size is two positive integers (at most
+        :data:`~jmocap.data.clip.MAX_IMAGE_SIDE`; ``"640"`` or ``True`` are refused, not
+        converted) and everything :class:`Clip` checks; errors name the source file.
         """
         side = read_camera_json(camera_json) if camera_json is not None else {}
         where = self.source or self.name
@@ -88,7 +93,14 @@ class Keypoints2D:
                 f"{where}: no image size: the format does not store one; pass image_size=(width, "
                 f"height) or write a sidecar camera file {sidecar_path(where).name if self.source else '<clip>.camera.json'}"
             )
-        size = tuple(int(v) for v in size)
+        if isinstance(size, np.ndarray):
+            size = size.tolist()
+        if not isinstance(size, (tuple, list)) or len(size) != 2:
+            raise FormatError(f"{where}: field 'image_size' must be (width, height), got {_type_name(size)}")
+        size = tuple(
+            _number(v, where, "image_size", integer=True, positive=True, maximum=MAX_IMAGE_SIDE)
+            for v in size
+        )
         intr = pick(intrinsics, "intrinsics", self.intrinsics)
         if intr is None:
             intr = default_intrinsics(*size)
@@ -103,16 +115,21 @@ class Keypoints2D:
         meta["first_frame"] = int(self.frame_ids[0]) if len(self.frame_ids) else 0
         if assumed:
             meta["assumed"] = assumed
-        return Clip(
-            name=name if name is not None else self.name,
-            layout=self.layout,
-            fps=float(f),
-            keypoints=self.keypoints,
-            intrinsics=np.asarray(intr, np.float64),
-            image_size=np.asarray(size),
-            extrinsics=None if extr is None else np.asarray(extr, np.float64),
-            meta=meta,
-        )
+        clip_name = name if name is not None else self.name
+        try:
+            return Clip(
+                name=clip_name,
+                layout=self.layout,
+                fps=f,
+                keypoints=self.keypoints,
+                intrinsics=intr,
+                image_size=np.asarray(size),
+                extrinsics=extr,
+                meta=meta,
+            )
+        except FormatError as e:  # name the source rather than the clip
+            msg, prefix = str(e), f"clip {clip_name!r}: "
+            raise type(e)(f"{where}: {msg.removeprefix(prefix)}") from None
 
 
 __all__ = ["DEFAULT_FPS", "Keypoints2D"]

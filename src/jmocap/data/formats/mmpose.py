@@ -19,7 +19,11 @@ from jmocap.data.formats.common import (
     _check_nonempty,
     _ferr,
     _fill_gaps,
+    _list_depth,
     _load_json,
+    _nested_numbers,
+    _number,
+    _type_name,
     clean_keypoints,
 )
 from jmocap.data.formats.keypoints import Keypoints2D
@@ -28,14 +32,25 @@ from jmocap.layouts import get_layout
 
 
 def _mmpose_instance(inst, path, frame, fieldname, J) -> Candidate | None:
+    """One MMPose instance as a candidate (None when no joint is visible).
+
+    Checked: ``keypoints`` is a (K, 2) list of number pairs (or (1, K, 2)) with K = ``J``;
+    ``keypoint_scores``, when present, K numbers (or [[K numbers]]); ``bbox_score`` a number
+    (or a list whose first element is one); ``track_id`` an integer. Everything a JSON number
+    (not a string or a boolean); a :class:`FormatError` naming file, frame and field otherwise.
+    """
     if not isinstance(inst, dict) or "keypoints" not in inst:
         raise _ferr(path, "instance has no 'keypoints'", frame, fieldname)
-    try:
-        xy = np.array(inst["keypoints"], dtype=np.float64)
-    except (TypeError, ValueError):
+    kps = inst["keypoints"]
+    depth = _list_depth(kps)
+    if depth not in (2, 3):
         raise _ferr(
-            path, "is not a (K, 2) list of numbers", frame, fieldname + ".keypoints"
-        ) from None
+            path,
+            f"must be a ({J}, 2) list of [x, y] pairs, got {_type_name(kps)} nested {depth} deep",
+            frame,
+            fieldname + ".keypoints",
+        )
+    xy = _nested_numbers(kps, depth, path, fieldname + ".keypoints", frame)
     if xy.ndim == 3 and xy.shape[0] == 1:  # some versions keep a leading instance axis
         xy = xy[0]
     if xy.ndim != 2 or xy.shape != (J, 2):
@@ -49,12 +64,13 @@ def _mmpose_instance(inst, path, frame, fieldname, J) -> Candidate | None:
     if scores is None:
         sc = np.ones(J)
     else:
-        try:
-            sc = np.array(scores, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError):
+        depth = _list_depth(scores)
+        if depth not in (1, 2):
             raise _ferr(
-                path, "is not a list of numbers", frame, fieldname + ".keypoint_scores"
-            ) from None
+                path, f"must be a list of {J} numbers", frame, fieldname + ".keypoint_scores"
+            )
+        sc = _nested_numbers(scores, depth, path, fieldname + ".keypoint_scores", frame)
+        sc = sc.reshape(-1)
         if sc.shape != (J,):
             raise _ferr(
                 path, f"has {sc.size} values, expected {J}", frame, fieldname + ".keypoint_scores"
@@ -65,12 +81,14 @@ def _mmpose_instance(inst, path, frame, fieldname, J) -> Candidate | None:
     score = inst.get("bbox_score")
     if isinstance(score, list):
         score = score[0] if score else None
-    if not isinstance(score, (int, float)) or not np.isfinite(score):
+    if score is not None:
+        score = _number(score, path, fieldname + ".bbox_score", frame, finite=False)
+    if score is None or not np.isfinite(score):
         score = float(kp[:, 2].sum()) / J
     track = inst.get("track_id")
-    return Candidate(
-        kp, float(score), int(track) if isinstance(track, int) and track >= 0 else None
-    )
+    if track is not None:
+        track = _number(track, path, fieldname + ".track_id", frame, integer=True)
+    return Candidate(kp, float(score), track if track is not None and track >= 0 else None)
 
 
 def read_mmpose_json(
@@ -93,7 +111,9 @@ def read_mmpose_json(
     "bbox_score": s}`` (``track_id`` used when present). ``K`` must match ``layout`` (17 for the
     default COCO-trained models; pass ``layout="h36m17"`` for Human3.6M-trained 2D models).
     The person score is ``bbox_score`` (else the mean keypoint score); one person per frame is
-    chosen by :func:`select_person`. No fps, image size or camera is stored.
+    chosen by :func:`select_person`. No fps, image size or camera is stored. Values must have
+    their JSON types (numbers are JSON numbers, ``frame_id`` / ``track_id`` integers), else a
+    :class:`FormatError` names the file, the frame and the field.
     """
     path = Path(path)
     data = _load_json(path)
@@ -108,8 +128,8 @@ def read_mmpose_json(
         frames, cands = [], []
         for k, d in enumerate(data):
             f = d.get("frame_id", k)
-            if not isinstance(f, int):
-                raise _ferr(path, f"frame_id {f!r} is not an integer", k, "frame_id")
+            if not isinstance(f, int) or isinstance(f, bool):
+                raise _ferr(path, f"must be an integer, got {_type_name(f)}", k, "frame_id")
             insts = d["instances"]
             if not isinstance(insts, list):
                 raise _ferr(path, "must be a list", f, "instances")

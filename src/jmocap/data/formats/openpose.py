@@ -20,6 +20,7 @@ from jmocap.data.formats.common import (
     _fill_gaps,
     _flat_triplets,
     _load_json,
+    _number,
     clean_keypoints,
 )
 from jmocap.data.formats.keypoints import Keypoints2D
@@ -31,8 +32,18 @@ OPENPOSE_VERSION = 1.3
 
 
 def _openpose_people(data, path, frame, J, layout_desc) -> list[Candidate]:
+    """The people of one OpenPose frame file, as candidates (people with no visible joint
+    left out).
+
+    Checked: the file is an object with a ``people`` list (and a numeric ``version`` when it
+    has one); each person is an object with ``pose_keypoints_2d``, a flat list of ``3 * J``
+    numbers (``null`` = missing) or empty (body not detected); ``person_id``, when present, is
+    an integer or a list whose first element is one (negative = no tracker id).
+    """
     if not isinstance(data, dict) or "people" not in data:
         raise _ferr(path, "not an OpenPose keypoints file (no 'people' list)", frame, "people")
+    if "version" in data:
+        _number(data["version"], path, "version", frame)
     people = data["people"]
     if not isinstance(people, list):
         raise _ferr(path, f"must be a list, got {type(people).__name__}", frame, "people")
@@ -50,8 +61,8 @@ def _openpose_people(data, path, frame, J, layout_desc) -> list[Candidate]:
         pid = person.get("person_id", -1)
         if isinstance(pid, list):
             pid = pid[0] if pid else -1
-        track = int(pid) if isinstance(pid, (int, float)) and pid >= 0 else None
-        cands.append(Candidate(kp, float(kp[:, 2].sum()) / J, track))
+        pid = _number(pid, path, f"people[{p}].person_id", frame, integer=True)
+        cands.append(Candidate(kp, float(kp[:, 2].sum()) / J, pid if pid >= 0 else None))
     return cands
 
 
@@ -61,7 +72,8 @@ def read_openpose_folder(
     """Read an OpenPose ``--write_json`` folder (BODY_25 model, JSON version 1.x).
 
     Files ``<video>_<frame:012d>_keypoints.json`` are ordered by the frame number in the file
-    name (gaps become all-missing frames); ``people[*].pose_keypoints_2d`` is the flat
+    name (gaps become all-missing frames, within the ``max_frame_gap`` / ``max_frames`` limits of
+    :mod:`jmocap.data.limits`); ``people[*].pose_keypoints_2d`` is the flat
     ``[x, y, c] * 25`` BODY_25 list. One person per frame is chosen by :func:`select_person`
     (``person="track"`` or ``"best"``); a frame with nobody is all-missing. OpenPose stores no
     fps, image size or camera. A single ``*_keypoints.json`` file is read as a one-frame clip.
@@ -81,7 +93,10 @@ def read_openpose_folder(
         m = OPENPOSE_FILE_RE.match(p.name)
         if not m:
             raise _ferr(p, "file name does not end in '_<frame number>_keypoints.json'")
-        frame = int(m.group("frame"))
+        try:
+            frame = int(m.group("frame"))
+        except ValueError:  # more digits than Python converts
+            raise _ferr(p, "the frame number in the file name is too long") from None
         prefixes.add(m.group("name"))
         data = _load_json(p, frame)
         per_frame.append(_openpose_people(data, p, frame, layout.num_joints, "BODY_25"))

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from jmocap.data import limits
-from jmocap.data.clip import FormatError
+from jmocap.data.clip import MAX_IMAGE_SIDE, FormatError
 from jmocap.data.formats.common import (
     _READ_ERRORS,
     _check_nonempty,
@@ -173,16 +173,12 @@ def _vp3d_video(path, metadata, subject):
     w, h = entry.get("w"), entry.get("h")
     if w is not None and h is not None:
         size = tuple(
-            _number(v, path, f"{field}.{k}", integer=True, positive=True, maximum=_MAX_SIDE)
+            _number(v, path, f"{field}.{k}", integer=True, positive=True, maximum=MAX_IMAGE_SIDE)
             for k, v in (("w", w), ("h", h))
         )
     if entry.get("fps") is not None:
         fps = _number(entry["fps"], path, f"{field}.fps", positive=True)
     return True, size, fps
-
-
-# the largest image side accepted (pixel coordinates are float32 later on)
-_MAX_SIDE = 2**31 - 1
 
 
 def _vp3d_entry(path, positions, metadata, layout, subject, action, cam, names) -> Keypoints2D:
