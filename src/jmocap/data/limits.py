@@ -240,8 +240,8 @@ def check_json_depth(data, where: str) -> None:
             continue
         if depth > lim:
             raise LimitError(
-                f"{where}: JSON nested {depth} deep, over the limit max_json_depth = {lim} "
-                f"({_flag('max_json_depth')})"
+                f"{where}: JSON nests arrays / objects more than {lim} deep, over the limit "
+                f"max_json_depth = {lim} ({_flag('max_json_depth')})"
             )
         stack.extend((c, depth + 1) for c in children if isinstance(c, (dict, list)))
 

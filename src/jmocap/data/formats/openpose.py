@@ -93,10 +93,7 @@ def read_openpose_folder(
         m = OPENPOSE_FILE_RE.match(p.name)
         if not m:
             raise _ferr(p, "file name does not end in '_<frame number>_keypoints.json'")
-        try:
-            frame = int(m.group("frame"))
-        except ValueError:  # more digits than Python converts
-            raise _ferr(p, "the frame number in the file name is too long") from None
+        frame = int(m.group("frame"))  # (a file name is too short to exceed int's digit limit)
         prefixes.add(m.group("name"))
         data = _load_json(p, frame)
         per_frame.append(_openpose_people(data, p, frame, layout.num_joints, "BODY_25"))

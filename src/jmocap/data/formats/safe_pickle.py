@@ -199,6 +199,7 @@ class RestrictedUnpickler(pickle.Unpickler):
     def find_class(self, module, name):
         found = _ALLOWED.get((module, name))
         if found is None:
+            module = "builtins" if module == "__builtin__" else module  # protocols 0-2 say so
             raise FormatError(
                 f"{self.where}: field {self.field!r}: refuses to unpickle {module + '.' + name!r} "
                 f"{_REFUSAL}"
