@@ -189,15 +189,7 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
     except FormatError:
         raise
     except Exception as e:  # not a zip, truncated, pickled objects, ...
-        raise FormatError(f"{path}: not a readable .npz result file ({type(e).__name__}: {e})") from None
-
-    def parse_json(key, text):
-        try:
-            value = json.loads(text)
-        except (ValueError, RecursionError) as e:  # bad JSON, huge integers, deep nesting
-            raise FormatError(f"{path}: field {key!r} is not readable JSON ({type(e).__name__}: {e})") from None
-        limits.check_json_depth(value, f"{path}: field {key!r}")
-        return value
+        raise FormatError(f"{path}: not a readable .npz result file ({e})") from None
 
     out: dict[str, Any] = {k: None for k in (*_SERIES, *_STATIC, *_SCALARS, *_STRINGS, *_BOOLS)}
     for key in ("q", "fps"):
@@ -229,7 +221,7 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
         out["certified"] = a
     out["diagnostics"] = None
     if "diagnostics" in data:
-        diag = parse_json("diagnostics", str(data["diagnostics"]))
+        diag = limits.parse_json(str(data["diagnostics"]), f"{path}: field 'diagnostics'")
         if not isinstance(diag, dict) or not all(
             isinstance(v, (int, float)) and not isinstance(v, bool) for v in diag.values()
         ):
@@ -263,7 +255,7 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
             out[key] = bool(a)
     for key in ("assumed", "warnings"):
         if out[key] is not None:
-            value = parse_json(key, out[key])
+            value = limits.parse_json(out[key], f"{path}: field {key!r}")
             if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
                 raise FormatError(f"{path}: field {key!r} must be a JSON list of strings, got {out[key][:80]!r}")
             out[key] = value

@@ -79,8 +79,11 @@ class ClipFormatError(FormatError):
 class Clip:
     """One clip of 2D keypoints with its camera and optional ground truth (numpy arrays).
 
-    Construction coerces dtypes (float32 keypoints/ground truth, float64 camera) and
-    validates everything (raises :class:`ClipFormatError`). Use :meth:`replace` to derive a
+    Construction coerces numeric dtypes (float32 keypoints/ground truth, float64 camera) and
+    validates everything (raises :class:`ClipFormatError`): strings, booleans, Python objects
+    and complex numbers are refused rather than converted (``fps="30"``, a boolean
+    ``gt_contacts``), and a clip has at most ``max_frames`` frames
+    (:mod:`jmocap.data.limits`, :class:`~jmocap.data.limits.LimitError`). Use :meth:`replace` to derive a
     modified clip. ``meta`` is a JSON-serialisable dict.
     """
 
@@ -245,7 +248,9 @@ def _check_finite(arr, key, where, per_frame=True):
 
 
 def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
-    """Coerce and validate clip fields; return the coerced values. Raises ClipFormatError."""
+    """Coerce and validate clip fields; return the coerced values. Raises ClipFormatError
+    (LimitError over ``max_frames``). Numbers only: :func:`_scalar_number` for the scalars,
+    :func:`_as_array` for the arrays."""
     out = dict(values)
 
     # scalars / strings
@@ -473,14 +478,11 @@ def clip_from_arrays(data, where: str) -> Clip:
         from jmocap.data import limits  # (imports this module)
 
         try:
-            meta = json.loads(meta_s)
-        except json.JSONDecodeError as e:
-            raise ClipFormatError(f"{where}: field 'meta' is not valid JSON: {e}") from None
-        except (ValueError, RecursionError) as e:  # huge integers, nesting Python cannot parse
-            raise ClipFormatError(
-                f"{where}: field 'meta' is not readable JSON: {type(e).__name__}: {e}"
-            ) from None
-        limits.check_json_depth(meta, f"{where}: field 'meta'")
+            meta = limits.parse_json(meta_s, f"{where}: field 'meta'")
+        except limits.LimitError:
+            raise
+        except FormatError as e:
+            raise ClipFormatError(str(e)) from None
         if not isinstance(meta, dict):
             raise ClipFormatError(
                 f"{where}: field 'meta' must be a JSON object, got {type(meta).__name__}"
@@ -507,12 +509,12 @@ def load_clip(path: str | os.PathLike) -> Clip:
     where = str(path)
     try:
         data = limits.load_npz(path, where)
-    except (FileNotFoundError, FormatError):
+    except (FileNotFoundError, limits.LimitError):
         raise
+    except FormatError as e:  # a member that is not a .npy, pickled objects, a bad header
+        raise ClipFormatError(str(e)) from None
     except Exception as e:  # BadZipFile, zlib.error, truncated members, non-npz bytes ...
-        raise ClipFormatError(
-            f"{where}: not a readable .npz file: {type(e).__name__}: {e}"
-        ) from None
+        raise ClipFormatError(f"{where}: not a readable .npz file ({e})") from None
     return clip_from_arrays(data, where)
 
 

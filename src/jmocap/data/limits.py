@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
+import json
 import math
 import os
 import zipfile
@@ -207,7 +208,8 @@ def load_npy(path: str | os.PathLike, where: str | None = None) -> np.ndarray:
 
 def load_npz(source: str | os.PathLike | bytes, where: str) -> dict[str, np.ndarray]:
     """Every array of an ``.npz`` (a path, or its bytes), without pickle, after checking
-    :func:`check_npz_members` and every member's header (:func:`check_npy_header`). Raises
+    :func:`check_npz_members`, that every member is a ``.npy`` and every member's header
+    (:func:`check_npy_header`; an array of Python objects is refused, never unpickled). Raises
     :class:`LimitError` or whatever reading a damaged file raises (callers turn those into their
     format's error)."""
     f = io.BytesIO(source) if isinstance(source, bytes) else source
@@ -216,13 +218,44 @@ def load_npz(source: str | os.PathLike | bytes, where: str) -> dict[str, np.ndar
     with zipfile.ZipFile(f) as z:
         check_npz_members(z, where)
         for info in z.infolist():
-            if info.filename.endswith(".npy"):
-                with z.open(info) as member:
-                    check_npy_header(member, where, info.filename.removesuffix(".npy"))
+            if not info.filename.endswith(".npy"):  # numpy would return its raw bytes
+                raise FormatError(f"{where}: member {info.filename!r} is not an array (.npy)")
+            field = info.filename.removesuffix(".npy")
+            with z.open(info) as member:
+                _shape, _fortran, dtype = check_npy_header(member, where, field)
+            if dtype.hasobject:
+                raise FormatError(
+                    f"{where}: field {field!r}: holds Python objects (pickled data), which are "
+                    "not read; expected numbers or strings"
+                )
     if isinstance(f, io.BytesIO):
         f.seek(0)
     with np.load(f, allow_pickle=False) as npz:
         return {k: npz[k] for k in npz.files}
+
+
+def parse_json(text: str | bytes, where: str):
+    """``json.loads(text)``, every problem a one-line :class:`FormatError` naming ``where``:
+    invalid JSON, an integer of more digits than Python converts, nesting too deep for Python's
+    parser or over ``max_json_depth`` (:class:`LimitError`, :func:`check_json_depth`), memory."""
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise FormatError(f"{where}: not valid JSON: {e}") from None
+    except UnicodeDecodeError as e:
+        raise FormatError(f"{where}: not a UTF-8 text: {e}") from None
+    except RecursionError:
+        lim = current().max_json_depth
+        raise LimitError(
+            f"{where}: JSON nested too deeply to parse, over the limit max_json_depth = {lim} "
+            f"({_flag('max_json_depth')})"
+        ) from None
+    except (ValueError, OverflowError) as e:  # e.g. an integer of more than 4300 digits
+        raise FormatError(f"{where}: not readable JSON: {e}") from None
+    except MemoryError:
+        raise FormatError(f"{where}: not readable JSON: out of memory while parsing") from None
+    check_json_depth(data, where)
+    return data
 
 
 def check_json_depth(data, where: str) -> None:
@@ -267,5 +300,6 @@ __all__ = [
     "current",
     "load_npy",
     "load_npz",
+    "parse_json",
     "use",
 ]

@@ -42,6 +42,7 @@ Errors raise :class:`FormatError` (a ``ValueError``) naming the file, the frame 
 from __future__ import annotations
 
 import os
+import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -100,6 +101,17 @@ def _json_kind(data) -> str:
     return "unknown"
 
 
+def _npz_fields(path: Path) -> list[str]:
+    """The array names of an ``.npz``, from its zip directory (nothing is decompressed or
+    unpickled; numpy's loader would try a non-zip file as a pickle). FormatError when the file
+    is not a zip."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            return [n.removesuffix(".npy") for n in z.namelist()]
+    except (*_READ_ERRORS, zipfile.LargeZipFile) as e:
+        raise _ferr(path, f"not a readable .npz file ({e})") from None
+
+
 def read_keypoints(path: str | os.PathLike, **kwargs) -> Keypoints2D:
     """Read any supported 2D keypoint file or folder, dispatching on what ``path`` is.
 
@@ -133,11 +145,7 @@ def read_keypoints(path: str | os.PathLike, **kwargs) -> Keypoints2D:
             path, "is not a recognised keypoint JSON (OpenPose, COCO results/annotations, MMPose)"
         )
     if suffix == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                files = list(npz.files)
-        except _READ_ERRORS as e:
-            raise _ferr(path, f"not a readable .npz file: {e}") from None
+        files = _npz_fields(path)
         if "format" in files:
             raise _ferr(path, "is a jmocap clip; use read_clip", field="format")
         if "positions_2d" in files:
@@ -176,12 +184,7 @@ def read_clip(
                 camera_json = cand
                 break
     if path.suffix.lower() == ".npz" and path.is_file():
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                is_clip = "format" in npz.files
-        except _READ_ERRORS as e:
-            raise _ferr(path, f"not a readable .npz file: {e}") from None
-        if is_clip:
+        if "format" in _npz_fields(path):
             clip = load_clip(path)
             side = read_camera_json(camera_json) if camera_json is not None else {}
             changes: dict[str, Any] = {}

@@ -40,8 +40,8 @@ def read_keypoint_array(
     extras: dict[str, np.ndarray] = {}
     try:
         if path.suffix == ".npy":
-            a = limits.load_npy(path, str(path))
             fieldname = "<array>"
+            a = limits.load_npy(path, f"{path}: field {fieldname!r}")
         else:
             npz = limits.load_npz(path, str(path))
             files = list(npz)

@@ -18,7 +18,6 @@ The underscore names are shared by the format modules of this package only.
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import pickle
 import re
@@ -84,31 +83,19 @@ def _load_json(path: Path, frame=None):
     """Parse the JSON file ``path``; every problem is a :class:`FormatError` naming the file
     (and ``frame`` when given).
 
-    Checked: the file size (:func:`jmocap.data.limits.check_file_size`), UTF-8, valid JSON,
-    nesting within ``max_json_depth`` (:func:`jmocap.data.limits.check_json_depth`; nesting too
-    deep for Python's parser says so too), integers within Python's digit limit, memory.
+    Checked: the file size (:func:`jmocap.data.limits.check_file_size`), then by
+    :func:`jmocap.data.limits.parse_json`: UTF-8, valid JSON, nesting within ``max_json_depth``
+    (nesting too deep for Python's parser says so too), integers within Python's digit limit.
     """
     where = f"{path}: frame {frame}" if frame is not None else str(path)
     limits.check_file_size(path, where)
+    with open(path, "rb") as f:
+        raw = f.read()
     try:
-        with open(path, encoding="utf-8") as f:
-            data = json.load(f)
-    except json.JSONDecodeError as e:
-        raise _ferr(path, f"not valid JSON: {e}", frame) from None
+        text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
         raise _ferr(path, f"not a UTF-8 text file: {e}", frame) from None
-    except RecursionError:
-        lim = limits.current().max_json_depth
-        raise limits.LimitError(
-            f"{where}: JSON nested too deeply to parse, over the limit max_json_depth = {lim} "
-            "(--limit max_json_depth=...)"
-        ) from None
-    except (ValueError, OverflowError) as e:  # e.g. an integer of more than 4300 digits
-        raise _ferr(path, f"not readable JSON: {e}", frame) from None
-    except MemoryError:
-        raise _ferr(path, "not readable JSON: out of memory while parsing", frame) from None
-    limits.check_json_depth(data, where)
-    return data
+    return limits.parse_json(text, where)
 
 
 def _is_number(v) -> bool:

@@ -90,7 +90,7 @@ class Keypoints2D:
         size = pick(image_size, "image_size", self.image_size)
         if size is None:
             raise FormatError(
-                f"{where}: no image size: the format does not store one; pass image_size=(width, "
+                f"{where}: field 'image_size': no image size: the format does not store one; pass image_size=(width, "
                 f"height) or write a sidecar camera file {sidecar_path(where).name if self.source else '<clip>.camera.json'}"
             )
         if isinstance(size, np.ndarray):

@@ -286,8 +286,7 @@ def _unpickle_member(z: zipfile.ZipFile, info: zipfile.ZipInfo, where: str, fiel
                 raise FormatError(f"{where}: field {field!r}: refuses {e} {_REFUSAL}") from None
             except Exception as e:  # truncated or malformed pickle: any error of a stand-in
                 raise FormatError(
-                    f"{where}: field {field!r}: not a readable pickled array "
-                    f"({type(e).__name__}: {e})"
+                    f"{where}: field {field!r}: not a readable pickled array ({e})"
                 ) from None
             if isinstance(top, _ArrayBuilder) and top.array is not None:
                 arr = top.array
