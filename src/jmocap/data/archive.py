@@ -40,7 +40,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from jmocap.data import limits as L
-from jmocap.data.clip import Clip, ClipFormatError, clip_from_arrays, clip_to_arrays
+from jmocap.data.clip import Clip, ClipFormatError, FormatError, clip_from_arrays, clip_to_arrays
 from jmocap.io import atomic_write, npz_bytes
 
 MANIFEST = "manifest.jsonl"
@@ -64,11 +64,11 @@ def _parse_manifest(text: str, where: str) -> list[dict[str, Any]]:
             continue
         last = i == len(lines) - 1 or (i == len(lines) - 2 and not lines[-1].strip())
         try:
-            e = json.loads(line)
-        except json.JSONDecodeError as err:
+            e = L.parse_json(line, f"{where}: line {i + 1}")
+        except FormatError as err:
             if last and not complete:
                 break  # an interrupted append
-            raise ArchiveError(f"{where}: line {i + 1} is not valid JSON: {err}") from None
+            raise ArchiveError(str(err)) from None
         if not isinstance(e, dict) or "name" not in e or "status" not in e:
             raise ArchiveError(f"{where}: line {i + 1} must be an object with 'name' and 'status'")
         if not isinstance(e["name"], str) or not e["name"]:
@@ -106,9 +106,9 @@ class ArchiveWriter:
             settings = json.loads(json.dumps(settings, sort_keys=True))
             if meta_path.exists():
                 try:
-                    old = json.loads(meta_path.read_text())
-                except json.JSONDecodeError as e:
-                    raise ArchiveError(f"{meta_path}: not valid JSON: {e}") from None
+                    old = L.parse_json(meta_path.read_bytes(), str(meta_path))
+                except FormatError as e:
+                    raise ArchiveError(str(e)) from None
                 if old != settings:
                     diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
                     raise ArchiveError(
@@ -119,7 +119,10 @@ class ArchiveWriter:
                 atomic_write(meta_path, (json.dumps(settings, indent=2, sort_keys=True) + "\n").encode())
         self.entries: dict[str, dict[str, Any]] = {}
         if self.manifest_path.exists():
-            text = self.manifest_path.read_text()
+            try:
+                text = self.manifest_path.read_text(encoding="utf-8")
+            except UnicodeDecodeError as e:
+                raise ArchiveError(f"{self.manifest_path}: not a UTF-8 text file: {e}") from None
             self.entries = latest(_parse_manifest(text, str(self.manifest_path)))
             if text and not text.endswith("\n"):
                 # cut off the interrupted last line before appending
@@ -193,9 +196,9 @@ class ArchiveWriter:
 
 def _json_or_error(data: bytes, where: str):
     try:
-        return json.loads(data)
-    except (ValueError, RecursionError) as e:
-        raise ArchiveError(f"{where}: not valid JSON: {e}") from None
+        return L.parse_json(data, where)
+    except FormatError as e:
+        raise ArchiveError(str(e)) from None
 
 
 def _sha256(data: bytes) -> str:
@@ -345,7 +348,7 @@ class Archive:
             raise ArchiveError(f"{where}: sha256 does not match the manifest")
         try:
             arrays = L.load_npz(data, where)
-        except L.LimitError:
+        except FormatError:  # over a limit, or an array jmocap does not read (names the field)
             raise
         except Exception as e:  # noqa: BLE001 - BadZipFile, zlib.error, truncated members, ...
             raise ClipFormatError(f"{where}: not a readable .npz file: {type(e).__name__}: {e}") from None
