@@ -1507,6 +1507,8 @@ class RunSpec:
     umask: int | None = None
     env: dict[str, str] = field(default_factory=dict)
     inprocess: bool = True  # may run in the test process (signals need a subprocess)
+    # what the test checks besides: chmod (restore after), rerun, stale / keep (files in OUTPUT),
+    # refused (a tar member), outside_links, exact_clips, max_tmp_bytes (TMPDIR's peak), signal
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -1816,7 +1818,7 @@ def _archive_cases() -> list[ArchiveCase]:
         good = npz_bytes(dict(clip_to_arrays(valid_clip("body25", 16))))
         lines = [{"name": "a", "file": "a.npz", "status": "ok"}, {"name": "nofile", "status": "ok"}]
         return RunSpec(clip_archive(s, lines, {"a.npz": good}), _out(s), clips={"a": "ok", "nofile": "fail"},
-                       mention={"nofile": ("'file'",)}, extra={"exit2_ok_if": "file"})
+                       mention={"nofile": ("'file'",)})
 
     @case("manifest_file_wrong_types", "manifest", {1, 2}, message=("file",))
     def _(s):
