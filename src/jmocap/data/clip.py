@@ -51,6 +51,8 @@ from typing import Any
 import numpy as np
 
 from jmocap.constants import GRAVITY, NUM_CONTACTS
+from jmocap.data import limits
+from jmocap.data.limits import FormatError
 from jmocap.io import atomic_write_npz
 from jmocap.layouts import LAYOUTS, get_layout
 
@@ -65,10 +67,6 @@ _GT_SHAPES = {"gt_contacts": (NUM_CONTACTS,), "gt_grf": (NUM_CONTACTS, 3), "gt_r
 _ARRAY_FIELDS = ("keypoints", "intrinsics", "image_size", "extrinsics") + GT_FIELDS
 #: the largest image width / height accepted (pixels; int32, like the arrays downstream)
 MAX_IMAGE_SIDE = 2**31 - 1
-
-
-class FormatError(ValueError):
-    """A file (or object) that does not follow its format; the message names file, frame, field."""
 
 
 class ClipFormatError(FormatError):
@@ -296,7 +294,6 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
     T = kp.shape[0]
     if T == 0:
         raise ClipFormatError(f"{where}: field 'keypoints' has T = 0 frames (an empty clip)")
-    from jmocap.data import limits  # (imports this module)
 
     limits.check_frames(T, f"{where}: field 'keypoints'")
     _check_finite(kp, "keypoints", where)
@@ -475,8 +472,6 @@ def clip_from_arrays(data, where: str) -> Clip:
             values[key] = data[key]
     meta_s = _str_field(data, "meta", where, required=False)
     if meta_s is not None:
-        from jmocap.data import limits  # (imports this module)
-
         try:
             meta = limits.parse_json(meta_s, f"{where}: field 'meta'")
         except limits.LimitError:
@@ -503,7 +498,6 @@ def load_clip(path: str | os.PathLike) -> Clip:
     """Load and validate a ``jmocap-clip-1`` .npz. Raises :class:`ClipFormatError` on any
     problem (:class:`~jmocap.data.limits.LimitError` when the file or one of its arrays is over
     the limits: read through :func:`jmocap.data.limits.load_npz`, never unpickled)."""
-    from jmocap.data import limits  # (imports this module)
 
     path = Path(path)
     where = str(path)

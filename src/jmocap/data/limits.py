@@ -23,9 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-from jmocap.data.clip import FormatError
-
 _MiB = 1 << 20
+
+
+class FormatError(ValueError):
+    """A file (or object) that does not follow its format; the message names file, frame, field.
+
+    Defined here, the lowest module of ``jmocap.data``, and re-exported by ``jmocap.data.clip``.
+    """
 
 
 class LimitError(FormatError):
