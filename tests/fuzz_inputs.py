@@ -82,6 +82,10 @@ LAYOUT_OF_FORMAT = {"clip": "body25", "openpose": "body25", "coco": "coco17", "m
 
 #: a failure message names a field, a frame or a limit
 DETAIL_RE = r"field '[^']*'|field \"[^\"]*\"|\bframe -?\d+|\bmax_[a-z_]+"
+#: or it says what is wrong with the file as a whole (then no field or frame applies)
+FILE_LEVEL_RE = (r"not a readable (?:\.npz|numpy) file|not (?:valid|readable) JSON|not (?:a )?UTF-8|"
+                 r"contains no frames|is an empty list|must be a JSON object|not an? [\w-]+ [\w ]*file|"
+                 r"file name does not end in|none of the keypoint names|not an archive|cannot read the archive")
 #: what a clean message never contains: a traceback, or a raw exception's ``Type: text``
 UNCLEAN_RE = r"Traceback \(most recent call last\)|File \"[^\"]+\", line \d+|\b[A-Z]\w*(?:Error|Exception): "
 
@@ -1308,7 +1312,7 @@ def _array_cases(reg: _Registry) -> None:
     add("shape_17_2", "wrong_shape", "fail", lambda k, m: k[0, :, :2])
     add("shape_4_channels", "wrong_shape", "fail", lambda k, m: np.concatenate([k, k[..., :1]], -1))
     add("scalar", "wrong_shape", "fail", lambda k, m: np.array(3.0))
-    add("empty_T0", "empty", "fail", lambda k, m: k[:0], mention=("field ", "frame "))
+    add("empty_T0", "empty", "fail", lambda k, m: k[:0], mention=("field ", "frame ", "no frames"))
     add("object_pickle", "pickle", "fail", lambda k, m: np.array([Payload(m, "array/object_pickle", "system")] * 3,
                                                                  dtype=object), fast=True)
     add("strings", "wrong_type", "fail", lambda k, m: k.astype(str))
@@ -2027,7 +2031,7 @@ def counts() -> dict[str, dict[str, int]]:
 
 
 __all__ = [
-    "DETAIL_RE", "MARKER", "UNCLEAN_RE", "ArchiveCase", "Case", "Member", "Payload", "RunSpec",
+    "DETAIL_RE", "FILE_LEVEL_RE", "MARKER", "UNCLEAN_RE", "ArchiveCase", "Case", "Member", "Payload", "RunSpec",
     "archive_cases", "build_clip_archive", "build_folder", "cases", "counts", "deflated_zeros", "pack",
     "raw_zip", "valid_clip",
 ]

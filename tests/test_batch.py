@@ -565,7 +565,8 @@ def test_output_folder_problems_are_one_line_errors(params, input_folder, tmp_pa
     assert (out / "manifest.jsonl").is_file()
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, pytest.param(signal.SIGINT, marks=pytest.mark.slow)])
+@pytest.mark.slow  # (the default suite: tests/test_fuzz.py's signal cases, smaller and faster)
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_a_signal_ends_the_run_with_a_summary(xla_cache, first_run, params, tmp_path, sig):
     """SIGTERM / SIGINT: the results computed so far are written, summary.json says the run was
     interrupted, the exit status is 128 + the signal, no traceback; the rerun completes."""

@@ -656,7 +656,7 @@ def test_keypoint_arrays(tmp_path):
     with pytest.raises(FormatError, match=r"bad.npy.*\(T, 17, 2\|3\)"):
         read_keypoint_array(tmp_path / "bad.npy")
     np.savez(tmp_path / "two.npz", a=a, b=a)
-    with pytest.raises(FormatError, match="pass key="):
+    with pytest.raises(FormatError, match="none of the keypoint names"):
         read_keypoint_array(tmp_path / "two.npz")
 
 

@@ -282,6 +282,38 @@ def test_manifest_paths_stay_inside_the_archive(tmp_path):
                 src[name].load()
         with pytest.raises(ArchiveError, match="field 'file' must be a file name"):
             src["nofile"].load()
+    with open(arch / MANIFEST, "a") as f:
+        f.write(json.dumps({"name": "dot", "file": ".", "status": "ok"}) + "\n")
+        f.write(json.dumps({"name": "dir", "file": "sub", "status": "ok"}) + "\n")
+    (arch / "sub").mkdir()
+    with open_sources(arch) as sources:
+        src = {s.name: s for s in sources}
+        with pytest.raises(ArchiveError, match="field 'file' must name a file of the archive"):
+            src["dot"].load()
+        with pytest.raises(ArchiveError, match="field 'file' names a folder"):
+            src["dir"].load()
+
+
+def test_a_manifest_that_is_not_utf8_is_one_line(tmp_path):
+    arch = tmp_path / "arch"
+    arch.mkdir()
+    (arch / MANIFEST).write_bytes(b'{"name": "\xff"}\n')
+    with pytest.raises(ArchiveError, match=r"manifest.jsonl: not UTF-8 text \(byte 10\)$"):
+        Archive(arch)
+    with zipfile.ZipFile(tmp_path / "a.zip", "w") as zf:
+        zf.writestr(MANIFEST, b"\xfe\n")
+    with pytest.raises(ArchiveError, match=r"a.zip:manifest.jsonl: not UTF-8 text \(byte 0\)"):
+        Archive(tmp_path / "a.zip")
+
+
+def test_a_clip_name_too_long_for_a_sidecar_has_none(tmp_path):
+    """A 251-byte name is a valid file name; its sidecar name (+ '.camera.json') is not: no
+    sidecar (ENAMETOOLONG is not an error), the clip loads."""
+    name = "n" * 247
+    save_clip(tmp_path / f"{name}.npz", person_clip(name=name))
+    with open_sources(tmp_path) as sources:
+        (src,) = list(sources)
+        assert src.load().name == name
 
 
 def test_damaged_containers_are_one_line_archive_errors(tmp_path):

@@ -201,6 +201,24 @@ def _json_or_error(data: bytes, where: str):
         raise ArchiveError(str(e)) from None
 
 
+def _decode(data: bytes, where: str) -> str:
+    """A manifest's text: UTF-8, else an ArchiveError naming the file and the byte."""
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ArchiveError(f"{where}: not UTF-8 text (byte {e.start})") from None
+
+
+def _reason(e: BaseException) -> str:
+    """An exception's own words for a one-line message (never its class name or a traceback)."""
+    text = " ".join(str(e).split())
+    if isinstance(e, KeyError):
+        return f"missing member {text}" if text else "a member is missing"
+    if isinstance(e, EOFError):
+        return "the file ends early"
+    return text or "damaged or truncated"
+
+
 def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
@@ -226,7 +244,7 @@ class Archive:
             raise
         except (OSError, zipfile.BadZipFile, tarfile.TarError, EOFError, UnicodeDecodeError, KeyError) as e:
             self.close()
-            raise ArchiveError(f"{self.path}: cannot read the archive: {type(e).__name__}: {e}") from None
+            raise ArchiveError(f"{self.path}: cannot read the archive ({_reason(e)})") from None
 
     def _open(self) -> None:
         if self.path.is_dir():
@@ -234,7 +252,7 @@ class Archive:
             mpath = self.path / MANIFEST
             if not mpath.exists():
                 raise ArchiveError(f"{self.path}: no {MANIFEST} in the folder")
-            text = mpath.read_text(encoding="utf-8")
+            text = _decode(mpath.read_bytes(), str(mpath))
             self._prefix = PurePosixPath("")
             meta = self.path / ARCHIVE_META
             self.settings = _json_or_error(meta.read_bytes(), str(meta)) if meta.exists() else None
@@ -243,7 +261,7 @@ class Archive:
             self._zip = zipfile.ZipFile(self.path)
             names = self._zip.namelist()
             self._prefix = self._find_prefix(names)
-            text = self._zip.read(str(self._prefix / MANIFEST)).decode("utf-8")
+            text = _decode(self._zip.read(str(self._prefix / MANIFEST)), f"{self.path}:{self._prefix / MANIFEST}")
             meta = str(self._prefix / ARCHIVE_META)
             self.settings = _json_or_error(self._zip.read(meta), f"{self.path}:{meta}") if meta in names else None
         elif self._looks_like(self.path) == "tar":
@@ -251,7 +269,8 @@ class Archive:
             self._tar = tarfile.open(self.path)
             names = self._tar.getnames()
             self._prefix = self._find_prefix(names)
-            text = self._tar.extractfile(str(self._prefix / MANIFEST)).read().decode("utf-8")
+            text = _decode(self._tar.extractfile(str(self._prefix / MANIFEST)).read(),
+                           f"{self.path}:{self._prefix / MANIFEST}")
             meta = str(self._prefix / ARCHIVE_META)
             self.settings = (
                 _json_or_error(self._tar.extractfile(meta).read(), f"{self.path}:{meta}") if meta in names else None
@@ -305,10 +324,14 @@ class Archive:
         pure = PurePosixPath(rel.replace("\\", "/"))
         if pure.is_absolute() or ".." in pure.parts or Path(rel).is_absolute():
             raise ArchiveError(f"{where}: field 'file' points outside the archive (not read)")
+        if not pure.parts:
+            raise ArchiveError(f"{where}: field 'file' must name a file of the archive, got {rel!r}")
         if self._kind == "dir":
             path = self.path / rel
             if not path.resolve().is_relative_to(self.path.resolve()):
                 raise ArchiveError(f"{where}: field 'file' points outside the archive (a link; not read)")
+            if path.exists() and not path.is_file():
+                raise ArchiveError(f"{where}: field 'file' names a folder or special file, not a file")
             L.check_file_size(path, where)
             return path.read_bytes()
         member = str(self._prefix / pure)
@@ -351,7 +374,7 @@ class Archive:
         except FormatError:  # over a limit, or an array jmocap does not read (names the field)
             raise
         except Exception as e:  # noqa: BLE001 - BadZipFile, zlib.error, truncated members, ...
-            raise ClipFormatError(f"{where}: not a readable .npz file: {type(e).__name__}: {e}") from None
+            raise ClipFormatError(f"{where}: not a readable .npz file ({_reason(e)})") from None
         return clip_from_arrays(arrays, where)
 
     def __iter__(self) -> Iterator[Clip]:

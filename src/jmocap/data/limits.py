@@ -16,6 +16,7 @@ import io
 import json
 import math
 import os
+import sys
 import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -256,6 +257,9 @@ def parse_json(text: str | bytes, where: str):
             f"({_flag('max_json_depth')})"
         ) from None
     except (ValueError, OverflowError) as e:  # e.g. an integer of more than 4300 digits
+        if "digits" in str(e):
+            raise FormatError(f"{where}: not readable JSON: a number of more than "
+                              f"{sys.get_int_max_str_digits()} digits") from None
         raise FormatError(f"{where}: not readable JSON: {e}") from None
     except MemoryError:
         raise FormatError(f"{where}: not readable JSON: out of memory while parsing") from None

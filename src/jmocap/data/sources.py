@@ -417,7 +417,7 @@ def _guarded(load: Callable[[], Clip], relabel) -> Callable[[], Clip]:
 
 
 def _has_camera(path: Path) -> bool:
-    return formats.sidecar_path(path).is_file() or (path.is_dir() and (path / "camera.json").is_file())
+    return formats.find_sidecar(path) is not None
 
 
 def _with_image_size(kp: formats.Keypoints2D, image_size) -> formats.Keypoints2D:
@@ -458,9 +458,9 @@ class _LastFile:
         if self.path != path:
             self.path, self.seqs = None, {}  # (a failed read leaves nothing behind)
             self.seqs, self.path = {kp.name: kp for kp in formats.iter_videopose3d(path)}, path
-        side = formats.sidecar_path(path)
+        side = formats.find_sidecar(path)
         kp = self.seqs[seq]
-        if side.is_file():
+        if side is not None:
             return kp.to_clip(camera_json=side)
         return _with_image_size(kp, image_size).to_clip()
 

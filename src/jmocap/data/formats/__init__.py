@@ -21,7 +21,7 @@ One module per format family (details, joint orders and examples in ``docs/forma
 * :mod:`~jmocap.data.formats.amass`: AMASS-style ``.npz`` with 3D joints (``joints`` or
   ``Jtr``): :func:`read_amass_joints`.
 * :mod:`~jmocap.data.formats.camera_file`: the camera sidecar ``<clip>.camera.json``:
-  :func:`read_camera_json`, :func:`write_camera_json`, :func:`sidecar_path`.
+  :func:`read_camera_json`, :func:`write_camera_json`, :func:`sidecar_path`, :func:`find_sidecar`.
 * jmocap clips (``.npz``, see :mod:`jmocap.data.clip`).
 
 Shared by all of them: :mod:`~jmocap.data.formats.keypoints` (:class:`Keypoints2D`),
@@ -53,7 +53,12 @@ from jmocap.data.clip import FORMAT as CLIP_FORMAT
 from jmocap.data.clip import Clip, ClipFormatError, FormatError, load_clip
 from jmocap.data.formats.amass import SMPL_JOINT_NAMES, Joints3D, read_amass_joints
 from jmocap.data.formats.arrays import read_keypoint_array
-from jmocap.data.formats.camera_file import read_camera_json, sidecar_path, write_camera_json
+from jmocap.data.formats.camera_file import (
+    find_sidecar,
+    read_camera_json,
+    sidecar_path,
+    write_camera_json,
+)
 from jmocap.data.formats.coco import read_coco_json, write_coco_results
 from jmocap.data.formats.common import _READ_ERRORS, _ferr, _load_json, clean_keypoints, safe_name
 from jmocap.data.formats.keypoints import DEFAULT_FPS, Keypoints2D
@@ -179,10 +184,7 @@ def read_clip(
     """
     path = Path(path)
     if camera_json is None:
-        for cand in (sidecar_path(path), path / "camera.json" if path.is_dir() else None):
-            if cand is not None and cand.is_file():
-                camera_json = cand
-                break
+        camera_json = find_sidecar(path)
     if path.suffix.lower() == ".npz" and path.is_file():
         if "format" in _npz_fields(path):
             clip = load_clip(path)
@@ -241,6 +243,7 @@ __all__ = [
     "read_videopose3d",
     "safe_name",
     "select_person",
+    "find_sidecar",
     "sidecar_path",
     "write_camera_json",
     "write_coco_results",

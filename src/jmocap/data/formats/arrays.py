@@ -49,7 +49,8 @@ def read_keypoint_array(
                 key = next((k for k in _ARRAY_KEYS if k in files), None)
                 if key is None:
                     if len(files) != 1:
-                        raise _ferr(path, f"has arrays {files}; pass key= to choose the keypoints")
+                        raise _ferr(path, f"has arrays {files} and none of the keypoint names {list(_ARRAY_KEYS)}: "
+                                           "name the keypoint array so (read_arrays(key=...) in Python)")
                     key = files[0]
             if key not in files:
                 raise _ferr(path, f"has no array {key!r} (arrays: {files})", field=key)

@@ -39,6 +39,19 @@ def sidecar_path(path: str | os.PathLike) -> Path:
     return p.with_name(stem + ".camera.json")
 
 
+def find_sidecar(path: str | os.PathLike) -> Path | None:
+    """The camera sidecar of a clip path when one exists: :func:`sidecar_path`, and for a
+    folder also ``<folder>/camera.json``. A name too long for the file system has none."""
+    p = Path(path)
+    for cand in (sidecar_path(p), p / "camera.json"):
+        try:
+            if cand.is_file():
+                return cand
+        except OSError:  # ENAMETOOLONG, EACCES: no readable sidecar of that name
+            continue
+    return None
+
+
 def read_camera_json(path: str | os.PathLike) -> dict[str, Any]:
     """Read a camera sidecar: ``{"fx", "fy", "cx", "cy", "width", "height"}`` plus optional
     ``"extrinsics"`` (4x4 nested list, world->camera, OpenCV axes) and ``"fps"``.
@@ -105,4 +118,4 @@ def write_camera_json(path: str | os.PathLike, clip: Clip) -> Path:
     return path
 
 
-__all__ = ["read_camera_json", "sidecar_path", "write_camera_json"]
+__all__ = ["find_sidecar", "read_camera_json", "sidecar_path", "write_camera_json"]
