@@ -295,8 +295,7 @@ def test_results_follow_the_schema(first_run, clips, params):
         np.testing.assert_array_equal(r["image_size"], clip.image_size)
         ext = clip.extrinsics if clip.extrinsics is not None else default_extrinsics()
         np.testing.assert_allclose(r["extrinsics"], ext, atol=1e-6)
-        height = None if name.startswith("takes/") else clip.height_m  # OpenPose has no height
-        want_h = DEFAULT_HEIGHT_M if height is None else height
+        want_h = DEFAULT_HEIGHT_M if clip.height_m is None else clip.height_m  # (OpenPose: from its sidecar)
         assert float(r["height_m"]) == pytest.approx(want_h)
         assert float(r["fps"]) == clip.fps
         assert str(r["config"]) == config_json(SMALL)
@@ -304,11 +303,36 @@ def test_results_follow_the_schema(first_run, clips, params):
         assert len(str(r["model_sha256"])) == 64 and str(r["version"])
     assumed = json.loads(str(np.load(out / "bare.npz")["assumed"]))
     assert {"extrinsics", "height_m"} <= set(assumed)
+    # where each height came from (jmocap.subject): the clips' own (OpenPose: its sidecar's);
+    # 'bare' has none, and no camera placement to estimate one from
+    m = read_manifest(out)
+    for name in names:
+        want = "nominal" if name == "bare" else "input"
+        assert str(np.load(out / f"{name}.npz")["height_source"]) == want == m[name]["height_source"], name
+    assert "extrinsics" in m["bare"]["height_estimate"]["reason"]
     res = load_result(out / "long.npz")  # the project's reader of result files
     assert res["q"].shape == (20, model.nq) and res["layout"] == "body25"
     assert res["method"] == "physcap" and res["forces_estimated"] is True
     assert res["mass_kg"] == pytest.approx(load_model(height_m=clips["long"].height_m,
                                                       mass_kg=clips["long"].mass_kg).total_mass)
+
+
+def test_height_and_mass_options_set_every_clip(xla_cache, params, clips, tmp_path):
+    """--height-m / --mass-kg: every clip's subject, over its own; recorded in the result, the
+    manifest and archive.json (a resume with other values is refused)."""
+    src, out = tmp_path / "in", tmp_path / "out"
+    src.mkdir()
+    save_clip(src / "short.npz", clips["short"])
+    assert clips["short"].height_m != 1.6
+    summary = reconstruct_archive(src, out, params, SMALL, dataclasses.replace(OPTS, height_m=1.6, mass_kg=60.0))
+    assert summary["ok"] == 1
+    res = load_result(out / "short.npz")
+    assert res["height_m"] == 1.6 and res["mass_kg"] == pytest.approx(60.0) and res["height_source"] == "argument"
+    assert read_manifest(out)["short"]["height_source"] == "argument"
+    settings = json.loads((out / "archive.json").read_text())
+    assert settings["height_m"] == 1.6 and settings["mass_kg"] == 60.0
+    with pytest.raises(ValueError, match="different settings"):
+        reconstruct_archive(src, out, params, SMALL, OPTS)
 
 
 def test_chunked_equals_unchunked(first_run, clips, params):

@@ -24,6 +24,8 @@ FORBIDDEN = {
     "model": ("methods", "pipeline", "batch", "evaluate", "metrics", "train", "cli", "demo", "data", "physics"),
     "io": ("methods", "pipeline", "batch", "evaluate", "metrics", "train", "cli", "demo", "data", "physics"),
     "pipeline": ("batch", "evaluate", "train", "cli", "demo"),
+    "subject": ("methods", "pipeline", "batch", "results", "evaluate", "metrics", "train", "cli", "demo",
+                "weights", "nets", "viz", "export", "physics"),
     "results": ("methods", "pipeline", "batch", "evaluate", "train", "cli", "demo"),
     "weights": ("pipeline", "batch", "evaluate", "train", "cli", "demo"),
     "batch": ("evaluate", "train", "cli", "demo"),

@@ -59,6 +59,7 @@ from jmocap.results import (
     check_finite,
     result_arrays,
 )
+from jmocap.subject import resolve_subject
 from jmocap.weights import model_sha256, params_sha256
 
 
@@ -99,6 +100,11 @@ class BatchOptions:
     bvh: bool = False  # also write <name>.bvh (jmocap.export.write_bvh)
     max_clips: int | None = None  # process at most this many clips this run
     pool: int = 0  # clips held while waiting for a full batch (0: 16 batches)
+    # the subject: a number (every clip), "auto" (the clip's own, else estimated from its 2D
+    # evidence, else nominal) or "nominal" (the clip's own, else the 1.75 m character);
+    # jmocap.subject.resolve_subject
+    height_m: float | str = "auto"
+    mass_kg: float | None = None  # every clip's mass (None: the clip's own, else nominal)
 
 
 @dataclass
@@ -158,6 +164,11 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
         **{k: identity[k] for k in ("method", "config", "params_sha256", "model_sha256")},
         "image_size": list(options.image_size) if options.image_size else None,
     }
+    # (only when not the default: output folders written before these options resume)
+    if options.height_m != "auto":
+        settings["height_m"] = options.height_m
+    if options.mass_kg is not None:
+        settings["mass_kg"] = options.mass_kg
     write_bvh = _bvh_writer() if options.bvh else None
     engine = Reconstructor(
         params, config, method=method, chunk=options.chunk, bucket=options.bucket, batch=options.batch,
@@ -213,8 +224,13 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
                     clip, res, method=method, height_m=height, mass_kg=model.total_mass,
                     forces_estimated=engine.method.estimates_forces, identity=identity, source=src.where,
                     assumed=assumed_fields(clip), warnings=it.warnings,
+                    height_source=clip.meta.get("height_source"),
                 )
-                extra = {"warnings": it.warnings} if it.warnings else {}
+                extra = {"height_source": clip.meta.get("height_source")}
+                if clip.meta.get("height_estimate"):
+                    extra["height_estimate"] = clip.meta["height_estimate"]
+                if it.warnings:
+                    extra["warnings"] = it.warnings
                 if res.get("certified") is not None:  # per-frame QP certificates (e.g. ``pip``)
                     extra["uncertified_frames"] = int(np.sum(~np.asarray(res["certified"], bool)))
                 if res.get("diagnostics") is not None:  # a solver's per-clip report (e.g. ``trajopt``)
@@ -255,7 +271,7 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
         capacity = options.pool or 16 * engine.group_size
         try:
             with _signals_raise():
-                for src, got, seconds in _read_ahead(todo, config, depth=engine.group_size):
+                for src, got, seconds in _read_ahead(todo, config, depth=engine.group_size, options=options):
                     if isinstance(got, BaseException):
                         submit(record_failure_safely, src, got, seconds)
                         continue
@@ -364,14 +380,15 @@ def _signals_raise():
         signal.signal(signal.SIGTERM, old)
 
 
-def _read_ahead(sources: Sequence[Source], config, depth: int):
+def _read_ahead(sources: Sequence[Source], config, depth: int, options: BatchOptions = BatchOptions()):  # noqa: B008
     """``(source, clip or the exception that reading it raised, seconds)`` in order, read
-    ``depth`` clips ahead on a thread (file reads and decompression overlap the compute)."""
+    ``depth`` clips ahead on a thread (file reads and decompression overlap the compute); each
+    clip with its subject resolved (:func:`jmocap.subject.resolve_subject`) and checked."""
 
     def load(src: Source):
         t = time.perf_counter()
         try:
-            clip = src.load()
+            clip = resolve_subject(src.load(), options.height_m, options.mass_kg)
             got = (clip, check_clip(clip, config, src.where))
         except Exception as e:  # noqa: BLE001 - recorded as the clip's failure (RecursionError too)
             got = e

@@ -292,6 +292,10 @@ def _eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-clips", type=int, help="evaluate a seeded random subset of this many clips")
     p.add_argument("--seed", type=int, default=0, help="seed of the clip subset and random init (default 0)")
     p.add_argument("--batch-size", type=int, default=8, help="clips per compiled batch (default 8)")
+    p.add_argument("--subject-height", choices=("given", "auto", "nominal"), default="given",
+                   help="the height the estimates use: the clips' own (default), estimated from the 2D "
+                        "evidence as for clips without one (jmocap.subject), or the nominal 1.75 m character; "
+                        "the ground truth always uses the clips' own")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)
 
@@ -316,6 +320,30 @@ def _image_size_arg(text: str):
     except ValueError:
         pass
     raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1920x1080, got {text!r}")
+
+
+def _height_arg(text: str):
+    """``--height-m``: metres in [0.5, 2.5], ``auto`` or ``nominal``."""
+    if text in ("auto", "nominal"):
+        return text
+    try:
+        h = float(text)
+    except ValueError:
+        h = float("nan")
+    if 0.5 <= h <= 2.5:
+        return h
+    raise argparse.ArgumentTypeError(f"expected a height in metres in [0.5, 2.5], 'auto' or 'nominal', got {text!r}")
+
+
+def _mass_arg(text: str) -> float:
+    """``--mass-kg``: kilograms in [10, 300]."""
+    try:
+        m = float(text)
+    except ValueError:
+        m = float("nan")
+    if 10.0 <= m <= 300.0:
+        return m
+    raise argparse.ArgumentTypeError(f"expected a mass in kilograms in [10, 300], got {text!r}")
 
 
 def _xla_cache_dir() -> str:
@@ -350,6 +378,14 @@ def _reconstruct(p: argparse.ArgumentParser) -> None:
                         "(default 0: one per CPU core; 1: a single device)")
     p.add_argument("--image-size", type=_image_size_arg, metavar="WxH",
                    help="image size assumed for clips whose file and camera sidecar give none")
+    p.add_argument("--height-m", type=_height_arg, default="auto", metavar="H|auto|nominal",
+                   help="the subject's height: H metres for every clip; 'auto' (default): the clip's or "
+                        "its sidecar's height_m, else estimated from the 2D keypoints when the camera's "
+                        "extrinsics are known, else the nominal 1.75 m character; 'nominal': no estimate. "
+                        "The result's height_source says which")
+    p.add_argument("--mass-kg", type=_mass_arg, default=None, metavar="M",
+                   help="the subject's mass for every clip (default: the clip's or its sidecar's mass_kg, "
+                        "else the character's nominal mass)")
     p.add_argument("--bvh", action="store_true", help="also write <name>.bvh per clip")
     p.add_argument("--max-clips", type=int, metavar="N", help="process at most N clips this run")
     p.add_argument("--cache-dir", default=_xla_cache_dir(), metavar="DIR",
@@ -434,7 +470,8 @@ def run_reconstruct(args) -> int:
             raise ValueError("--chunk, --bucket and --batch must be >= 1, --max-clips >= 0")
         options = BatchOptions(
             chunk=args.chunk, bucket=args.bucket, batch=args.batch, image_size=args.image_size,
-            bvh=args.bvh, max_clips=args.max_clips,
+            bvh=args.bvh, max_clips=args.max_clips, height_m=getattr(args, "height_m", "auto"),
+            mass_kg=getattr(args, "mass_kg", None),
         )
         summary = reconstruct_archive(
             args.input, args.output, params, config, options, method=method,

@@ -53,6 +53,7 @@ from jmocap.io import atomic_write
 from jmocap.model import Model, character
 from jmocap.pipeline import subject_model
 from jmocap.progress import Progress
+from jmocap.subject import resolve_subject
 
 #: the reference row: the ground truth through the same metrics
 GROUND_TRUTH = "ground_truth"
@@ -83,6 +84,10 @@ class EvalConfig:
     seed: int = 0
     progress: bool = True
     max_frames: int | None = None  # crop every clip to its first frames (quick checks)
+    # the height the estimates are made with: "given" (the clip's, as the ground truth's), "auto"
+    # (estimated from the 2D evidence, jmocap.subject, as for a clip without one) or "nominal"
+    # (the 1.75 m / 73 kg character); the ground truth always uses the clip's own subject
+    subject_height: str = "given"
 
 
 @dataclass
@@ -161,10 +166,20 @@ def _batched_reconstruct(method: str) -> Callable:
     return jax.jit(jax.vmap(methods_.get_method(method).reconstruct, in_axes=(None, 0, 0, None)))
 
 
-def _prepare(clips: list[Clip], length: int, size: int) -> _Batch:
+def _estimate_subject(clip: Clip, how: str) -> Clip:
+    """The clip as the estimate sees it (:attr:`EvalConfig.subject_height`)."""
+    if how == "given":
+        return clip
+    if how not in ("auto", "nominal"):
+        raise ValueError(f"subject_height must be 'given', 'auto' or 'nominal', got {how!r}")
+    return resolve_subject(clip.replace(height_m=None, mass_kg=None), how)
+
+
+def _prepare(clips: list[Clip], length: int, size: int, subject_height: str = "given") -> _Batch:
     padded = clips + [clips[-1]] * (size - len(clips))
     inputs = _stack([ClipInputs.from_clip(c, length) for c in padded])
-    models = _stack([subject_model(c) for c in padded])
+    estimates = [subject_model(_estimate_subject(c, subject_height)) for c in padded]
+    models = _stack(estimates)
     subjects = [subject_model(c) for c in padded]
     fps = np.array([c.fps for c in padded], np.float32)
     layout = padded[0].layout
@@ -179,7 +194,7 @@ def _prepare(clips: list[Clip], length: int, size: int) -> _Batch:
             if getattr(c, fld) is not None:  # the clip's own arrays where it has them
                 g[key] = _pad_edge(getattr(c, fld), length)
         gt.append(g)
-    hw = np.array([M.sole_half_width(m) for m in subjects], np.float32)
+    hw = np.array([M.sole_half_width(m) for m in estimates], np.float32)
     return _Batch(clips, inputs, models, gt, hw)
 
 
@@ -247,7 +262,7 @@ def evaluate(
         raise ValueError(f"{archive}: no clip with ground truth to evaluate")
     length = max(c.num_frames for c in usable)
     B = min(config.batch_size, len(usable))
-    batches = [_prepare(usable[i : i + B], length, B) for i in range(0, len(usable), B)]
+    batches = [_prepare(usable[i : i + B], length, B, config.subject_height) for i in range(0, len(usable), B)]
 
     per_clip: dict[str, dict[str, dict[str, float]]] = {m: {} for m in config.methods}
     motions: dict[str, dict[str, dict[str, np.ndarray]]] = {}
@@ -459,7 +474,8 @@ def cmd_eval(args) -> int:
             if name not in method_names() or name == GROUND_TRUTH or not path:
                 raise ValueError(f"--method-params expects METHOD=PATH with a known method, got {item!r}")
             own[name] = load_run_params(path, method="physcap")
-        cfg = EvalConfig(methods, args.batch_size, args.max_clips, args.seed, not args.quiet)
+        cfg = EvalConfig(methods, args.batch_size, args.max_clips, args.seed, not args.quiet,
+                         subject_height=getattr(args, "subject_height", "given"))
         result = evaluate(args.archive, params, base, cfg, method_params=own)
     except (ValueError, FileNotFoundError, ArchiveError) as e:
         print(f"jmocap eval: {e}", file=sys.stderr)

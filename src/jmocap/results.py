@@ -29,6 +29,9 @@ extrinsics         float64    (4, 4)        world -> camera
 assumed            str        ()            JSON list of values that were defaults, not data
 warnings           str        ()            JSON list of what was implausible but usable in the
                                             input (jmocap.data.validate; also in the manifest)
+height_source      str        ()            where ``height_m`` came from: ``input``
+                                            (clip or sidecar), ``argument`` (--height-m),
+                                            ``estimated`` (jmocap.subject), ``nominal``
 config             str        ()            JSON of the method's config
 params_sha256,     str        ()            identity of the weights, the character file and
 model_sha256,                               the package version
@@ -74,7 +77,7 @@ _SERIES = {
 _STATIC = {"intrinsics": (4,), "image_size": (2,), "extrinsics": (4, 4)}
 _SCALARS = ("fps", "height_m", "mass_kg")
 _STRINGS = ("format", "name", "source", "method", "layout", "version", "config", "params_sha256",
-            "model_sha256", "assumed", "warnings")
+            "model_sha256", "assumed", "warnings", "height_source")
 _BOOLS = ("forces_estimated",)
 
 
@@ -131,6 +134,7 @@ def result_arrays(
     source: str,
     assumed: Sequence[str] = (),
     warnings: Sequence[str] = (),
+    height_source: str | None = None,
 ) -> dict[str, np.ndarray]:
     """The arrays of a ``jmocap-result-1`` file (see the module docstring)."""
     extr = ClipInputs.from_clip(clip).extrinsics  # the clip's, or the default camera
@@ -154,6 +158,8 @@ def result_arrays(
         "extrinsics": np.asarray(extr, np.float64),
         "assumed": np.array(json.dumps(list(assumed))),
         "warnings": np.array(json.dumps(list(warnings))),
+        "height_source": np.array(height_source if height_source is not None
+                                  else ("input" if clip.height_m is not None else "nominal")),
     }
     out.update({k: np.array(v) for k, v in identity.items()})
     return out

@@ -195,6 +195,8 @@ def read_clip(
                 ("image_size", image_size),
                 ("intrinsics", intrinsics),
                 ("extrinsics", extrinsics),
+                ("height_m", None),
+                ("mass_kg", None),
             ):
                 v = arg if arg is not None else side.get(key)
                 if v is not None:

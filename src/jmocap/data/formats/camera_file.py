@@ -56,8 +56,11 @@ def read_camera_json(path: str | os.PathLike) -> dict[str, Any]:
     """Read a camera sidecar: ``{"fx", "fy", "cx", "cy", "width", "height"}`` plus optional
     ``"extrinsics"`` (4x4 nested list, world->camera, OpenCV axes) and ``"fps"``.
 
+    The subject's ``"height_m"`` and ``"mass_kg"`` may be given too (numbers > 0; their
+    plausible ranges are checked with the clip, :mod:`jmocap.data.validate`).
+
     Returns ``{"intrinsics": (4,), "image_size": (w, h), "extrinsics": (4, 4) | None,
-    "fps": float | None}``.
+    "fps": float | None, "height_m": float | None, "mass_kg": float | None}``.
 
     Checked (else a :class:`FormatError` naming the file and the field): the file is a JSON
     object; ``fx``, ``fy``, ``cx``, ``cy`` are finite JSON numbers with ``fx``, ``fy`` > 0;
@@ -95,11 +98,15 @@ def read_camera_json(path: str | os.PathLike) -> dict[str, Any]:
     if fps is not None:
         fps = _number(fps, path, "fps", positive=True)
     out["fps"] = fps
+    for key in ("height_m", "mass_kg"):  # the subject's, optional (jmocap.subject)
+        v = data.get(key)
+        out[key] = None if v is None else _number(v, path, key, positive=True)
     return out
 
 
 def write_camera_json(path: str | os.PathLike, clip: Clip) -> Path:
-    """Write the camera (and fps) of ``clip`` as a sidecar JSON, atomically."""
+    """Write the camera, fps and subject (``height_m``, ``mass_kg`` when known) of ``clip`` as a
+    sidecar JSON, atomically."""
     fx, fy, cx, cy = (float(v) for v in clip.intrinsics)
     w, h = (int(v) for v in clip.image_size)
     data: dict[str, Any] = {
@@ -113,6 +120,9 @@ def write_camera_json(path: str | os.PathLike, clip: Clip) -> Path:
     }
     if clip.extrinsics is not None:
         data["extrinsics"] = np.asarray(clip.extrinsics, np.float64).tolist()
+    for key in ("height_m", "mass_kg"):  # the subject, when the clip knows it
+        if getattr(clip, key, None) is not None:
+            data[key] = float(getattr(clip, key))
     path = Path(path)
     _atomic_write_text(path, json.dumps(data, indent=1))
     return path

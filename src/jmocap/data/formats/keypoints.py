@@ -70,7 +70,8 @@ class Keypoints2D:
         :func:`jmocap.camera.default_intrinsics` (f = 1000 px, principal point at the image
         centre), no extrinsics. There is no default image size: without one a
         :class:`FormatError` asks for it. Defaults that were used are listed in
-        ``clip.meta["assumed"]``.
+        ``clip.meta["assumed"]``. The subject's ``height_m`` / ``mass_kg`` come from the sidecar
+        (none of the keypoint formats stores them).
 
         Checked: the image size is two positive integers (at most
         :data:`~jmocap.data.clip.MAX_IMAGE_SIDE`; ``"640"`` or ``True`` are refused, not
@@ -125,6 +126,8 @@ class Keypoints2D:
                 intrinsics=intr,
                 image_size=np.asarray(size),
                 extrinsics=extr,
+                height_m=side.get("height_m"),
+                mass_kg=side.get("mass_kg"),
                 meta=meta,
             )
         except FormatError as e:  # name the source rather than the clip
