@@ -322,28 +322,31 @@ def _image_size_arg(text: str):
     raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1920x1080, got {text!r}")
 
 
+def _number_in(text: str, lo: float, hi: float) -> float | None:
+    """``text`` as a number in [lo, hi], else None."""
+    try:
+        x = float(text)
+    except ValueError:
+        return None
+    return x if lo <= x <= hi else None
+
+
 def _height_arg(text: str):
     """``--height-m``: metres in [0.5, 2.5], ``auto`` or ``nominal``."""
     if text in ("auto", "nominal"):
         return text
-    try:
-        h = float(text)
-    except ValueError:
-        h = float("nan")
-    if 0.5 <= h <= 2.5:
-        return h
-    raise argparse.ArgumentTypeError(f"expected a height in metres in [0.5, 2.5], 'auto' or 'nominal', got {text!r}")
+    h = _number_in(text, 0.5, 2.5)
+    if h is None:
+        raise argparse.ArgumentTypeError(f"expected a height in metres in [0.5, 2.5], 'auto' or 'nominal', got {text!r}")
+    return h
 
 
 def _mass_arg(text: str) -> float:
     """``--mass-kg``: kilograms in [10, 300]."""
-    try:
-        m = float(text)
-    except ValueError:
-        m = float("nan")
-    if 10.0 <= m <= 300.0:
-        return m
-    raise argparse.ArgumentTypeError(f"expected a mass in kilograms in [10, 300], got {text!r}")
+    m = _number_in(text, 10.0, 300.0)
+    if m is None:
+        raise argparse.ArgumentTypeError(f"expected a mass in kilograms in [10, 300], got {text!r}")
+    return m
 
 
 def _xla_cache_dir() -> str:
