@@ -115,3 +115,22 @@ def test_the_checker_sees_imports_inside_functions(tmp_path):
     function body is found (the old batch -> cli circle hid behind such imports)."""
     found = imports()["demo"]
     assert any(dep.startswith("batch") for dep, _ in found)  # demo imports batch inside run_demo
+
+
+def test_the_batch_path_calls_no_lapack():
+    """The reconstruction methods, the physics and the batch engine must not call LAPACK-lowered
+    linear algebra (``jnp.linalg.cholesky/solve/inv/...``, ``jax.scipy.linalg``): on CPU with the
+    batch sharded over host devices (``jmocap reconstruct``'s default: one per core), two such
+    calls at once deadlock XLA's thread pool at 0 % CPU (``jmocap.physics.linalg`` says why; the
+    per-frame fit of ``trajopt`` and ``pip`` did so until it used ``physics.linalg``)."""
+    import re
+
+    src = SRC
+    pattern = re.compile(r"(jax\.scipy\.linalg|jnp\.linalg\.(cholesky|solve|inv|eigh|eig|svd|lstsq|qr|det|slogdet)"
+                         r"|jax\.numpy\.linalg\.(cholesky|solve|inv|eigh|eig|svd|lstsq|qr|det|slogdet))")
+    files = [*sorted((src / "methods").glob("*.py")), *sorted((src / "physics").glob("*.py")), src / "pipeline.py",
+             src / "nets.py", src / "model.py"]
+    bad = [f"{f.relative_to(src)}:{i}: {line.strip()}" for f in files
+           for i, line in enumerate(f.read_text().splitlines(), 1)
+           if pattern.search(line) and not line.lstrip().startswith("#") and f.name != "linalg.py"]
+    assert not bad, "LAPACK-lowered linear algebra on the batch path:\n" + "\n".join(bad)

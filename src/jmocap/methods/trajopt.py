@@ -70,6 +70,7 @@ from jmocap.methods.kinematic import KinematicConfig
 from jmocap.methods.kinematic import init_params as init_tpnet_params
 from jmocap.model import Model
 from jmocap.motion import Motion
+from jmocap.physics.linalg import cho_solve, cholesky
 from jmocap.physics.qp import friction_pyramid_edges
 from jmocap.physics.rotations import quat_error, quat_exp, quat_mul, quat_normalize
 
@@ -591,8 +592,9 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
             H = Jm.T @ Jm
             g = Jm.T @ r
             D = jnp.diag(H) + 1e-6 * jnp.trace(H) / model.nv + 1e-9
-            chol = jax.scipy.linalg.cho_factor(H + lam * jnp.diag(D))
-            dq = -jax.scipy.linalg.cho_solve(chol, g)
+            # jmocap's own Cholesky, not LAPACK's: two LAPACK calls at once deadlock XLA's CPU
+            # pool when the batch is sharded over host devices (physics.linalg)
+            dq = -cho_solve(cholesky(H + lam * jnp.diag(D)), g)
             q_new = P.integrate_positions(model, qt, dq, 1.0)
             f_new = cost(q_new, prior, kp, cf, c)
             ok = jnp.isfinite(f_new) & (f_new < f_old)
