@@ -107,11 +107,11 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
     from jmocap.model import load_model
 
     model = load_model(with_mjx=backend == "mjx")
-    if backend == "pip":  # the pip method (dual PD + tracking QP), its shipped config
+    if backend in ("pip", "pip_tpnet"):  # the pip method (dual PD + tracking QP) or its variant
         from jmocap.weights import load_run_params
 
         reconstruct = get_method("pip").reconstruct
-        params, cfg = load_run_params(None, method="pip")
+        params, cfg = load_run_params(None, method=backend)
         source = "shipped weights"
     else:
         reconstruct = get_method("physcap").reconstruct
@@ -277,7 +277,8 @@ def main(argv=None):
     ap.add_argument("--large-frames", type=int, default=30,
                     help="frames per clip at batch 512 (extrapolated per frame; 300 takes too long)")
     ap.add_argument("--devices", type=int, default=1, help=argparse.SUPPRESS)  # with --one
-    ap.add_argument("--pip", action="store_true", help="also the pip method (backend column 'pip')")
+    ap.add_argument("--pip", action="store_true",
+                    help="also the pip method and its variant pip_tpnet (backend columns 'pip', 'pip_tpnet')")
     args = ap.parse_args(argv)
     if args.one:
         b, f, backend = args.one
@@ -308,6 +309,7 @@ def main(argv=None):
                     (512 if not args.quick else 8, args.large_frames, "pip", 1)]
         if cores > 1:
             configs += [(512 if not args.quick else 8, args.large_frames, "pip", cores)]
+        configs += [(512 if not args.quick else 8, args.large_frames, "pip_tpnet", cores)]
     print(f"machine: {machine()}  (OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']})", flush=True)
     rows = []
     for b, f, backend, ndev in configs:
@@ -347,11 +349,11 @@ def main(argv=None):
             r = big["fps"] / mjx_fps
             print(f"  >= 100x the MJX backend: {r:,.0f}x  {'met' if r >= 100 else 'NOT met'}"
                   + (f" (same batch 1: {same[0]['fps'] / mjx_fps:,.0f}x)" if same else ""))
-    pp = [r for r in ok if r["backend"] == "pip"]
+    pp = [r for r in ok if r["backend"] in ("pip", "pip_tpnet")]
     for r in pp:
         ref = [j for j in jm if j["batch"] == r["batch"] and j["devices"] == r["devices"]]
         ratio = f"{r['fps'] / ref[0]['fps']:.2f}x physcap's" if ref else "no physcap row at this batch"
-        print(f"  pip, batch {r['batch']}, {r['devices']} host device(s): {r['fps']:,.0f} frames/s "
+        print(f"  {r['backend']}, batch {r['batch']}, {r['devices']} host device(s): {r['fps']:,.0f} frames/s "
               f"({'met' if r['fps'] >= 500 else 'NOT met'}: >= 500), {ratio}")
     if args.profile:
         for b in args.profile_batch or [8 if args.quick else 512]:

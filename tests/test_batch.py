@@ -35,7 +35,8 @@ import pytest
 
 from jmocap import methods
 from jmocap import physics as P
-from jmocap.batch import BatchOptions, check_clip, reconstruct_archive
+from jmocap.batch import BatchOptions, check_clip
+from jmocap.batch import reconstruct_archive as _reconstruct_archive
 from jmocap.camera import default_extrinsics
 from jmocap.constants import DEFAULT_HEIGHT_M
 from jmocap.data.clip import FormatError, clip_to_arrays, save_clip
@@ -67,6 +68,12 @@ SMALL = PhysCapConfig(
 )
 OPTS = BatchOptions(chunk=8, bucket=8, batch=2)  # every call: 2 clips x (19 + 8) frames
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def reconstruct_archive(*args, **kwargs):
+    """The archive engine with the small ``physcap`` config these tests compile (the engine is
+    method-agnostic; ``physcap`` with small nets compiles fastest)."""
+    return _reconstruct_archive(*args, **{"method": "physcap", **kwargs})
 
 
 # ---------------------------------------------------------------------------------------
@@ -160,6 +167,13 @@ def test_chunk_plan_and_frames():
     idx, real = chunk_frames(20, 0, 4, 3)
     np.testing.assert_array_equal(idx, [0, 0, 0, 0, 1, 2, 3])
     assert not real[:3].any() and real[3:].all()
+    # a lookahead reads frames after the chunk: real inside the clip, the last frame repeated after it
+    idx, real = chunk_frames(20, 8, 4, 2, lookahead=3)
+    np.testing.assert_array_equal(idx, [6, 7, 8, 9, 10, 11, 12, 13, 14])
+    assert real.all()
+    idx, real = chunk_frames(20, 16, 4, 1, lookahead=2)
+    np.testing.assert_array_equal(idx, [15, 16, 17, 18, 19, 19, 19])
+    np.testing.assert_array_equal(real, [True] * 5 + [False] * 2)
 
 
 @pytest.mark.slow  # 15 s of compilation; test_chunked_equals_unchunked fails too if the history is short
@@ -194,15 +208,15 @@ def test_config_overrides_and_params_check(tmp_path, params):
     save_params(path, params)
     cfg = tmp_path / "cfg.json"
     cfg.write_text(json.dumps(dataclasses.asdict(SMALL)))
-    p, c = load_run_params(path, str(cfg))
+    p, c = load_run_params(path, str(cfg), method="physcap")
     assert c == SMALL and params_sha256(p) == params_sha256(params)
-    _, c2 = load_run_params(path, '{"cycle": {"iterations": 3, "nets": {"tp_width": 16}}}')
+    _, c2 = load_run_params(path, '{"cycle": {"iterations": 3, "nets": {"tp_width": 16}}}', method="physcap")
     assert c2.iterations == 3 and c2.nets.tp_width == 16 and c2.nets.dyn_width == NetConfig().dyn_width
     with pytest.raises(ValueError, match="unknown config fields"):
-        load_run_params(path, '{"iteration": 3}')
-    check_params(p, c)
+        load_run_params(path, '{"iteration": 3}', method="physcap")
+    check_params(p, c, "physcap")
     with pytest.raises(ValueError, match=r"do not fit the config: \[.dynet.\]"):
-        check_params(p, c2)
+        check_params(p, c2, "physcap")
 
 
 def test_scan_folder_names_and_skips(input_folder, tmp_path):
@@ -429,7 +443,7 @@ def cli(tmp_path, params, *extra, cache, env=None):
     if not p.exists():
         save_params(p, params)
         (tmp_path / "cfg.json").write_text(json.dumps(dataclasses.asdict(SMALL)))
-    cmd = [sys.executable, "-m", "jmocap.cli", "reconstruct", *map(str, extra), "--params", str(p),
+    cmd = [sys.executable, "-m", "jmocap.cli", "reconstruct", "--method", "physcap", *map(str, extra), "--params", str(p),
            "--config", str(tmp_path / "cfg.json"), "--chunk", "8", "--bucket", "8", "--quiet",
            "--cache-dir", cache]
     return cmd, {**os.environ, "PYTHONPATH": str(ROOT / "src"), **(env or {})}

@@ -269,6 +269,29 @@ def test_root_residual_grf_error_and_torque_error():
     close(M.torque_error(t, t_gt, 2.0, 3.0), 1.0)
 
 
+def test_foot_grf_correlation_by_hand():
+    # left foot (points 0, 1) and right (2, 3); only the vertical components count
+    gt = np.zeros((4, 4, 3), np.float32)
+    gt[:, 0, 2] = [0, 1, 2, 3]  # left heel: the true left foot rises 0, 1, 2, 3
+    gt[:, 3, 2] = [3, 2, 1, 0]  # right toe: falls
+    gt[:, :, 0] = 50.0  # horizontal forces are ignored
+    est = np.zeros_like(gt)
+    est[:, 1, 2] = [0, 2, 4, 6]  # the left foot on its toe, twice as strong: r = +1
+    est[:, 2, 2] = [0, 1, 2, 3]  # the right foot backwards: r = -1
+    close(M.foot_grf_correlation(est, gt), 0.0)  # mean(+1, -1)
+    est[:, 2, 2] = [3, 1, 1, 0]  # x = (1.75, -0.25, -0.25, -1.25), y = (1.5, .5, -.5, -1.5): r = 4.5 / sqrt(4.75 * 5)
+    close(M.foot_grf_correlation(est, gt), 0.5 * (1.0 + 4.5 / np.sqrt(4.75 * 5.0)))
+    # a constant foot has no correlation: the mean is over the other foot
+    est[:, 2, 2] = 7.0
+    close(M.foot_grf_correlation(est, gt), 1.0)
+    # both constant (L = R = a constant): undefined
+    assert np.isnan(M.foot_grf_correlation(np.ones_like(gt), gt))
+    # the mask drops frames: on frames 0-2 the right estimate (3, 1, 1) vs truth (3, 2, 1):
+    # x = (4/3, -2/3, -2/3), y = (1, 0, -1): r = 2 / sqrt(8/3 * 2)
+    est[:, 2, 2] = [3, 1, 1, 99]
+    close(M.foot_grf_correlation(est, gt, np.array([True, True, True, False])), 0.5 * (1.0 + 2.0 / np.sqrt(16 / 3)))
+
+
 def test_support_polygon_distance_inside_outside():
     sq = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
     on = np.ones(4, bool)

@@ -91,9 +91,7 @@ def _demo_cycle(names=("demo_walk", "demo_run", "demo_jump"), frames=120):
 
         @jax.jit
         def run(params, inputs, model=model):
-            tp = S.target_pose(params, model, inputs, config)
-            ref = pip.reference(model, tp.q_hat, S.contact_probability(tp.contact_logits), inputs.fps,
-                                config.velocity_smoothing_s)
+            ref = pip.clip_reference(params, model, inputs, config)
             _, fo = pip.simulate(model, ref, jnp.asarray(inputs.mask), inputs.fps, config)
             return ref, fo
 
@@ -256,13 +254,15 @@ def test_an_uncertified_solve_is_made_safe(enable_x64):
     np.testing.assert_allclose(np.asarray(sol.tau), np.asarray(want), atol=1e-6 * float(jnp.abs(want).max()))
 
 
-@pytest.mark.slow  # ~1 min warm: it compiles three chunk shapes; `make test-slow`
-def test_chunked_equals_whole_clip():
-    """The pipeline's chunks (state and velocity filter carried) agree with ``reconstruct`` on the
-    whole clip to float32 rounding, relative to each field's magnitude."""
+@pytest.mark.slow  # ~1 min warm each: it compiles three chunk shapes; `make test-slow`
+@pytest.mark.parametrize("name", ["pip", "pip_tpnet"])
+def test_chunked_equals_whole_clip(name):
+    """The pipeline's chunks (state and velocity filter carried; history before and, for ``pip``,
+    6 frames of lookahead after each chunk) agree with ``reconstruct`` on the whole clip to
+    float32 rounding, relative to each field's magnitude."""
     from jmocap.pipeline import Reconstructor
 
-    params, config = load_run_params(None, method="pip")
+    params, config = load_run_params(None, method=name)
     clip = load_clip(DEMO / "demo_walk.npz").slice(0, 30)
     chunked = Reconstructor(params, config, method="pip", chunk=12, bucket=4, batch=1).run([clip])[0]
     model = subject_model(clip)
@@ -271,3 +271,59 @@ def test_chunked_equals_whole_clip():
         w = np.asarray(getattr(whole, k))
         np.testing.assert_allclose(chunked[k], w, rtol=0, atol=2e-3 * (float(np.abs(w).max()) + 1e-3), err_msg=k)
     np.testing.assert_array_equal(chunked["certified"], np.asarray(whole.certified))
+
+
+def test_smooth_poses_against_numpy():
+    """The reference smoothing: a normalised Gaussian over the real frames of the window, the root
+    quaternion averaged sign-aligned with the centre frame and normalised; padded frames are
+    left as they are and are never read."""
+    rng = np.random.default_rng(3)
+    T, nq, radius, sigma = 20, 9, 3, 1.5
+    q = rng.normal(size=(T, nq))
+    quat = rng.normal(size=(T, 4))
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+    q[:, 3:7] = quat
+    mask = np.ones(T, bool)
+    mask[16:] = False  # padding
+    q[16:] = 1e6  # must not leak into real frames
+    got = np.asarray(pip.smooth_poses(jnp.asarray(q), jnp.asarray(mask), radius, sigma))
+    want = q.copy()
+    for t in range(16):
+        idx = [s for s in range(t - radius, t + radius + 1) if 0 <= s < T and mask[s]]
+        w = np.exp(-0.5 * ((np.array(idx) - t) / sigma) ** 2)
+        w /= w.sum()
+        nb = q[idx].copy()
+        sign = np.where(nb[:, 3:7] @ q[t, 3:7] < 0, -1.0, 1.0)
+        nb[:, 3:7] *= sign[:, None]
+        avg = w @ nb
+        avg[3:7] /= np.linalg.norm(avg[3:7])
+        want[t] = avg
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+    # a quaternion and its negative are the same rotation: flipping neighbours' signs changes nothing
+    flipped = q.copy()
+    flipped[1::2, 3:7] *= -1
+    got_f = np.asarray(pip.smooth_poses(jnp.asarray(flipped), jnp.asarray(mask), radius, sigma))
+    np.testing.assert_allclose(np.abs(np.sum(got_f[:16, 3:7] * got[:16, 3:7], 1)), 1.0, atol=1e-5)
+    # radius 0: the poses as they are
+    np.testing.assert_allclose(np.asarray(pip.smooth_poses(jnp.asarray(q), jnp.asarray(mask), 0, sigma)), q, rtol=1e-6)
+
+
+def test_lookahead_and_history_follow_the_config():
+    """``pip`` reads 6 frames ahead with the contact estimator (its 9-frame windows around the 5
+    frames each votes for), the smoothing radius with the smoothing, nothing for ``pip_tpnet``."""
+    from jmocap import methods
+
+    _, config = load_run_params(None, method="pip")
+    m = methods.get_method("pip")
+    assert m.lookahead(config) == 6
+    assert m.lookahead(config.replace(smoothing_radius=9)) == 9
+    assert m.lookahead(config.replace(contact_source="tpnet", smoothing_radius=0)) == 0
+    # "auto": the MLP reads BODY_25's heels and toes; other layouts use TPNet's contact head
+    assert config.contact_source == "auto" and pip.contact_source(config) == "mlp"
+    assert pip.contact_source(config.replace(layout="coco17")) == "tpnet"
+    assert m.lookahead(config.replace(layout="coco17", smoothing_radius=0)) == 0
+    with pytest.raises(ValueError, match="contact_source"):
+        pip.contact_source(config.replace(contact_source="oracle"))
+    _, literal = load_run_params(None, method="pip_tpnet")
+    assert m.lookahead(literal) == 0
+    assert m.history(config) == 2 * config.nets.window - 1 + config.smoothing_radius

@@ -79,11 +79,13 @@ def run_demo(
         r = load_result(out / "results" / f"{clip.name}.npz")
         results[clip.name] = (clip, r)
         model = result_model(r)
+        # the method's motion, and the kinematic reference it tracked (its result's target_q: for
+        # pip the pose fitted to the 2D keypoints, for physcap TPNet's target)
         rows[clip.name] = {
-            "dynamic cycle": evaluate_motion(
+            DEFAULT_METHOD: evaluate_motion(
                 clip, q=r["q"], grf=r["grf"], tau=r["tau"], contact_prob=r["contact_prob"], model=model
             ),
-            "kinematic": evaluate_motion(clip, q=r["target_q"], contact_prob=r["contact_prob"], model=model),
+            "reference": evaluate_motion(clip, q=r["target_q"], contact_prob=r["contact_prob"], model=model),
         }
     table = _metrics_table(rows, METRICS)
     (out / "metrics.md").write_text(table)

@@ -505,6 +505,35 @@ def grf_error(grf: Array, gt_grf: Array, weight, gt_weight, mask=None) -> Array:
 
 
 @jax.jit
+def foot_grf_correlation(grf: Array, gt_grf: Array, mask=None) -> Array:
+    """Per-foot vertical GRF correlation with the ground truth: for each foot the Pearson
+    correlation over real frames of its vertical force (heel + toe: contact points 0+1 are the
+    left foot, 2+3 the right, :data:`jmocap.constants.CONTACT_SITES`) with the ground truth's,
+    then the mean of the two feet. It measures timing and the share between the feet, not the
+    magnitude (a foot whose estimated or true force is constant has no correlation: NaN, and the
+    mean is over the defined feet). +1: the estimate's left/right loading follows the truth; a
+    method that gives both feet the same force scores about 0 on a walk."""
+    grf, gt_grf = _forces(grf), _forces(gt_grf, "gt_grf")
+    _same(grf, gt_grf, "grf", "gt_grf")
+    if grf.shape[-2] != 4:
+        raise ValueError(f"grf must have the 4 contact points (..., T, 4, 3), got {tuple(grf.shape)}")
+
+    def feet(f):
+        return jnp.stack([f[..., 0, 2] + f[..., 1, 2], f[..., 2, 2] + f[..., 3, 2]], -1)  # (..., T, 2)
+
+    a, b = feet(grf), feet(gt_grf)
+    w = _frame_mask(mask, a.shape[:-1])[..., None].astype(a.dtype)
+    n = jnp.sum(w, -2)
+    ca = a - jnp.sum(w * a, -2, keepdims=True) / jnp.maximum(n, 1)[..., None, :]
+    cb = b - jnp.sum(w * b, -2, keepdims=True) / jnp.maximum(n, 1)[..., None, :]
+    va, vb = jnp.sum(w * ca * ca, -2), jnp.sum(w * cb * cb, -2)
+    tiny = 1e-12 * jnp.maximum(jnp.max(jnp.abs(b), axis=-2) ** 2, 1.0) * jnp.maximum(n, 1)
+    ok = (va > tiny) & (vb > tiny) & (n >= 3)
+    r = jnp.sum(w * ca * cb, -2) / jnp.sqrt(jnp.where(ok, va * vb, 1.0))
+    return jnp.sum(jnp.where(ok, r, 0.0), -1) / jnp.where(jnp.any(ok, -1), jnp.sum(ok, -1), jnp.nan)
+
+
+@jax.jit
 def torque_error(tau: Array, gt_tau: Array, mass, gt_mass, mask=None) -> Array:
     """Joint torque error (N m / kg): the mean over real frames and hinge dofs (``tau[6:]``) of
     ``|tau / m - tau_gt / m_gt|``, each torque over the mass of its own model."""
@@ -752,6 +781,7 @@ METRICS: dict[str, MetricInfo] = {
     "zmp_dist_m": MetricInfo("ZMP distance to support polygon", "m", "lower", "[002] Sec. 4"),
     "cone_violation_pct": MetricInfo("motion needs force outside the friction cone", "%", "lower", "jmocap"),
     "grf_err_pct_bw": MetricInfo("net GRF error vs ground truth", "% BW", "lower", "jmocap"),
+    "foot_grf_corr": MetricInfo("per-foot vertical GRF correlation with ground truth", "", "higher", "jmocap"),
     "torque_err_nm_kg": MetricInfo("joint torque error vs ground truth", "N m/kg", "lower", "jmocap"),
     "contact_acc_pct": MetricInfo("contact accuracy", "%", "higher", "[001] Fig. E1"),
     "contact_prec_pct": MetricInfo("contact precision", "%", "higher", "jmocap"),
@@ -884,6 +914,8 @@ def _metric_values(p, g, m, fps, camera, root, pred_mass, gt_mass) -> dict[str, 
         out["cone_violation_pct"] = friction_cone_violation(p["implied_force"], pw, m)
     if p.get("grf") is not None and g.get("grf") is not None and pw is not None and gw is not None:
         out["grf_err_pct_bw"] = grf_error(p["grf"], g["grf"], pw, gw, m)
+        if p["grf"].shape[-2] == 4 and g["grf"].shape[-2] == 4:
+            out["foot_grf_corr"] = foot_grf_correlation(p["grf"], g["grf"], m)
     if p.get("tau") is not None and g.get("tau") is not None and pred_mass is not None and gt_mass is not None:
         out["torque_err_nm_kg"] = torque_error(p["tau"], g["tau"], pred_mass, gt_mass, m)
     if p.get("contact_prob") is not None and gt_contacts is not None:

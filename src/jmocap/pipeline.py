@@ -20,8 +20,10 @@ Chunking is exact. A method needs ``method.history(config)`` frames of keypoints
 whose own window reaches further back, so frame t depends on frames ``t - 2(W - 1) .. t``; one
 more frame serves the backward-difference velocity). Before a clip's first frame the first frame
 is repeated, which is what :func:`jmocap.methods.stages.causal_windows` does for a whole clip;
-the dynamic state is carried from chunk to chunk. Chunked and whole-clip reconstructions agree
-to float32 rounding (tests/test_pipeline.py).
+the dynamic state is carried from chunk to chunk. A method with a fixed latency also reads
+``method.lookahead(config)`` frames after the chunk (after a clip's last frame the last frame is
+repeated, marked not real). Chunked and whole-clip reconstructions agree to float32 rounding
+(tests/test_pipeline.py).
 """
 
 from __future__ import annotations
@@ -59,8 +61,9 @@ class ChunkResult:
 def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry, first, config, *, method: str,
                       history: int) -> tuple[Any, ChunkResult]:
     """One chunk of one clip with ``method`` (a registered name): ``inputs`` holds
-    ``history + L`` frames, the chunk's L frames preceded by the ``history`` frames before them
-    (``inputs.mask[history:]`` marks the real chunk frames). ``carry`` is the method's state at
+    ``history + L + lookahead`` frames, the chunk's L frames preceded by the ``history`` frames
+    before them and followed by the method's ``lookahead(config)`` frames after them
+    (``inputs.mask[history:history + L]`` marks the real chunk frames). ``carry`` is the method's state at
     the end of the previous chunk; where ``first`` is True (the clip's first chunk) the method
     starts afresh. Returns the state after the chunk's last real frame and the chunk's results."""
     m = methods.get_method(method)
@@ -95,10 +98,12 @@ def chunk_plan(num_frames: int, chunk: int, bucket: int) -> tuple[int, ...]:
     return (chunk,) * full + last
 
 
-def chunk_frames(num_frames: int, start: int, length: int, history: int) -> tuple[np.ndarray, np.ndarray]:
-    """Frame indices (history + length,) of the chunk starting at ``start`` (clamped to the clip:
-    the first frame repeats before it, the last after it) and which of them are real frames."""
-    idx = np.arange(start - history, start + length)
+def chunk_frames(num_frames: int, start: int, length: int, history: int,
+                 lookahead: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Frame indices (history + length + lookahead,) of the chunk starting at ``start`` (clamped
+    to the clip: the first frame repeats before it, the last after it) and which of them are
+    real frames."""
+    idx = np.arange(start - history, start + length + lookahead)
     return np.clip(idx, 0, num_frames - 1), (idx >= 0) & (idx < num_frames)
 
 
@@ -156,6 +161,7 @@ class Reconstructor:
         self._config = constant_config(config)
         self.group_size = self.batch * len(self.devices)
         self.history = self.method.history(config)
+        self.lookahead = self.method.lookahead(config)
 
     def plan(self, clip: Clip) -> tuple[int, ...]:
         """A causal method's chunks; a non-causal one (``trajopt``) sees its whole clip at once,
@@ -187,12 +193,13 @@ class Reconstructor:
         if any(self.plan(c) != plan for c in clips):
             raise ValueError("the clips of a group must share one chunk plan")
         rows = list(clips) + [clips[0]] * (self.group_size - len(clips))
-        H, G = self.history, self.group_size
-        # every row's keypoints over the whole plan at once, history in front; chunk c is then
-        # the slice [start_c, start_c + H + L_c) (chunk_frames of each chunk)
+        H, A, G = self.history, self.lookahead, self.group_size
+        # every row's keypoints over the whole plan at once, history in front and lookahead
+        # behind; chunk c is then the slice [start_c, start_c + H + L_c + A) (chunk_frames of
+        # each chunk)
         kp, real = [], []
         for c in rows:
-            idx, r = chunk_frames(c.num_frames, 0, sum(plan), H)
+            idx, r = chunk_frames(c.num_frames, 0, sum(plan), H, A)
             kp.append(np.asarray(c.keypoints, np.float32)[idx])
             real.append(r)
         kp, real = np.stack(kp), np.stack(real)
@@ -203,7 +210,7 @@ class Reconstructor:
         models, whole, carry = jax.device_put((models, whole, carry), self._rows)
         fetched, pending, start = [], None, 0
         for c, length in enumerate(plan):
-            window = slice(start, start + H + length)
+            window = slice(start, start + H + length + A)
             keypoints, mask, first = jax.device_put(
                 (kp[:, window], real[:, window], np.full(G, c == 0)), self._rows
             )

@@ -32,7 +32,7 @@ from jmocap.methods.kinematic import KinematicConfig
 from jmocap.methods.physcap import PhysCapConfig
 
 #: the method ``jmocap reconstruct`` and the demo use unless told otherwise
-DEFAULT_METHOD = "physcap"
+DEFAULT_METHOD = "pip"
 
 __all__ = [
     "DEFAULT_METHOD",

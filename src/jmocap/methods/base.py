@@ -9,6 +9,9 @@ them once per shape):
   any length in bounded memory with it); must agree with ``reconstruct`` to float rounding;
 * ``init_carry(model, config)`` -- a zero state of the carried pytree (its shapes);
 * ``history(config)`` -- how many frames of input before a chunk the chunk needs;
+* ``lookahead(config)`` -- how many frames of input *after* a chunk it needs (0 for a causal
+  method; a fixed-latency method, e.g. ``pip`` with a centred contact window, reads a few; the
+  chunk's inputs are then ``history + L + lookahead`` frames and its output ``L`` frames);
 * ``init_params(key, model, config)`` -- fresh parameters of the method's networks.
 
 ``config`` is a :mod:`flax.struct` dataclass: fields marked static (stage choice, iteration
@@ -59,6 +62,8 @@ class Method:
     init_carry: Callable
     history: Callable[[Any], int]
     init_params: Callable
+    #: frames of input after a chunk that the chunk needs (see the module docstring)
+    lookahead: Callable[[Any], int] = lambda config: 0
     #: whether the method estimates forces and torques (its Motion's grf / tau mean something)
     estimates_forces: bool = True
     #: whether frame t depends on frames <= t only (streaming-capable)
