@@ -243,6 +243,10 @@ def _motion(out: FrameOutput, ref: Reference, mask) -> Motion:
     return Motion(out.q, out.qd, out.tau, out.grf, ref.prob, ref.q, mask, certified=out.certified)
 
 
+#: frames before a frame over which the per-frame fit's image scale is taken (a causal median)
+SCALE_FRAMES = 12
+
+
 def contact_source(config: PIPConfig) -> str:
     """The contact estimator ``config`` uses: ``"mlp"`` or ``"tpnet"`` (``"auto"`` resolved by the
     layout: the MLP reads BODY_25's heels and toes)."""
@@ -278,6 +282,9 @@ def reference_poses(model: Model, inputs: ClipInputs, tp, prob: Array, config: P
 
         tcfg = TO.TrajOptConfig(layout=config.layout, nets=config.nets, w_accel=0.0, w_contact_vel=0.0)
         prob_t = TO.problem(model, inputs, tp.q_hat, prob, tcfg)
+        # the image scale of the robust reprojection: per frame, over it and the 12 frames
+        # before it (trajopt uses the whole clip's; a chunk must see what the whole clip sees)
+        prob_t = prob_t.replace(unit_px=TO.person_height_px_causal(prob_t.keypoints, prob_t.mask, SCALE_FRAMES) / 100.0)
         return TO.per_frame_fit(model, tp.q_hat, prob_t, tcfg, config.fit_iterations, tcfg.gm_scale_initial,
                                 tcfg.gm_scale)
     raise ValueError(f"unknown reference_source {config.reference_source!r} (tpnet, fit)")
@@ -287,7 +294,8 @@ def smooth_poses(q: Array, mask: Array, radius: int, sigma) -> Array:
     """Poses (T, nq) smoothed by a centred Gaussian window of ``2 radius + 1`` frames (standard
     deviation ``sigma`` frames) over the real frames (``mask``): root position and hinge angles
     averaged, the root quaternion averaged after aligning each neighbour's sign with the centre
-    frame's, then normalised. ``radius = 0`` returns ``q``."""
+    frame's, then normalised; a frame that is not real takes the nearest earlier real frame's
+    value (else the nearest later one's). ``radius = 0`` returns ``q``."""
     if radius == 0:
         return q
     T = q.shape[0]
@@ -303,7 +311,13 @@ def smooth_poses(q: Array, mask: Array, radius: int, sigma) -> Array:
     sign = jnp.where(jnp.sum(quat * q[:, None, 3:7], -1, keepdims=True) < 0, -1.0, 1.0)
     avg = jnp.einsum("tk,tkn->tn", ww, nb.at[..., 3:7].set(quat * sign))
     avg = avg.at[:, 3:7].set(avg[:, 3:7] / jnp.linalg.norm(avg[:, 3:7], axis=-1, keepdims=True))
-    return jnp.where(mask[:, None], avg, q)
+    # frames that are not real take the nearest real frame's (edge replication: a chunk's history
+    # before the clip's first frame then repeats that frame, as the whole clip's start does)
+    t = jnp.arange(T)
+    prev = jax.lax.cummax(jnp.where(mask, t, -1), axis=0)
+    nxt = jax.lax.cummin(jnp.where(mask, t, T), axis=0, reverse=True)
+    near = jnp.where(prev >= 0, prev, jnp.where(nxt < T, nxt, t))
+    return jnp.where(jnp.any(mask), avg[near], q)
 
 
 def clip_reference(params: dict, model: Model, inputs: ClipInputs, config: PIPConfig = PIPConfig()) -> Reference:
@@ -330,7 +344,8 @@ def history(config) -> int:
     reference smoothing's radius; at least the contact estimator's window (6 frames)."""
     from jmocap.methods import contact_estimation as CE
 
-    return max(2 * config.nets.window - 1 + config.smoothing_radius, CE.HALF_WINDOW + CE.HALF_OUT)
+    fit = SCALE_FRAMES + config.smoothing_radius if config.reference_source == "fit" else 0
+    return max(2 * config.nets.window - 1 + config.smoothing_radius, CE.HALF_WINDOW + CE.HALF_OUT, fit)
 
 
 def lookahead(config) -> int:

@@ -206,15 +206,32 @@ class Problem:
     anchor_kp: Array  # (T, J, 3) joints of the kinematic fit (the physics stage's anchor)
 
 
-def person_height_px(keypoints: Array, mask: Array) -> Array:
-    """The median over real frames of the vertical extent of the confident keypoints (pixels),
-    at least 20 px."""
+def _vertical_extent(keypoints: Array, mask: Array) -> Array:
+    """(T,) the vertical extent of each frame's confident keypoints (pixels); NaN where the
+    frame is not real or has fewer than two."""
     kp = jnp.asarray(keypoints)
     ok = kp[..., 2] > 0.1
     v = kp[..., 1]
     ext = jnp.max(jnp.where(ok, v, -jnp.inf), -1) - jnp.min(jnp.where(ok, v, jnp.inf), -1)
-    ext = jnp.where(mask & (jnp.sum(ok, -1) >= 2), ext, jnp.nan)
+    return jnp.where(mask & (jnp.sum(ok, -1) >= 2), ext, jnp.nan)
+
+
+def person_height_px(keypoints: Array, mask: Array) -> Array:
+    """The median over real frames of the vertical extent of the confident keypoints (pixels),
+    at least 20 px."""
+    ext = _vertical_extent(keypoints, mask)
     return jnp.maximum(jnp.nan_to_num(jnp.nanmedian(ext), nan=200.0), 20.0)
+
+
+def person_height_px_causal(keypoints: Array, mask: Array, frames: int) -> Array:
+    """(T,) per frame, the median of :func:`person_height_px`'s per-frame extents over the frame
+    and the ``frames`` real frames before it (at least 20 px; 200 px without any): a local,
+    causal image scale, so that a chunked run (``pip``) sees the same value as a whole-clip one."""
+    ext = _vertical_extent(keypoints, mask)
+    T = ext.shape[0]
+    idx = jnp.arange(T)[:, None] - jnp.arange(frames + 1)[None, :]
+    win = jnp.where(idx >= 0, ext[jnp.clip(idx, 0, T - 1)], jnp.nan)
+    return jnp.maximum(jnp.nan_to_num(jnp.nanmedian(win, axis=1), nan=200.0), 20.0)
 
 
 # ---------------------------------------------------------------------------------------
@@ -568,17 +585,17 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
     cam = Camera(prob.intrinsics, jnp.zeros(2, q.dtype), prob.extrinsics)
     conf = prob.keypoints[..., 2]
     target = prob.keypoints[..., :2]
-    unit = prob.unit_px
+    units = jnp.broadcast_to(prob.unit_px, q.shape[:1])  # the clip's scale, or one per frame
 
-    def robust(uv, kp, cf, c):
-        r2 = jnp.sum((uv - kp) ** 2, -1) / unit**2
-        return config.w_reproj * jnp.sum(cf * geman_mcclure(r2, c)), r2
+    def solve_frame(qt, prior, kp, cf, unit):
+        def robust(uv, kp, cf, c):
+            r2 = jnp.sum((uv - kp) ** 2, -1) / unit**2
+            return config.w_reproj * jnp.sum(cf * geman_mcclure(r2, c)), r2
 
-    def cost(qt, prior, kp, cf, c):
-        uv, _, other, _ = _frame_residuals(model, qt, prior, cam, config)
-        return robust(uv, kp, cf, c)[0] + jnp.sum(other**2)
+        def cost(qt, prior, kp, cf, c):
+            uv, _, other, _ = _frame_residuals(model, qt, prior, cam, config)
+            return robust(uv, kp, cf, c)[0] + jnp.sum(other**2)
 
-    def solve_frame(qt, prior, kp, cf):
         def step(k, s):
             qt, lam = s
             frac = k / jnp.maximum(iterations - 1, 1)
@@ -605,7 +622,7 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
         qt, _ = jax.lax.fori_loop(0, iterations, step, (qt, jnp.asarray(1e-3, qt.dtype)))
         return qt
 
-    fitted = jax.vmap(solve_frame)(q, prob.prior_rr, target, conf)
+    fitted = jax.vmap(solve_frame)(q, prob.prior_rr, target, conf, units)
     # frames without enough evidence: from their neighbours
     T = q.shape[0]
     t = jnp.arange(T)
