@@ -66,7 +66,8 @@ class Method:
     lookahead: Callable[[Any], int] = lambda config: 0
     #: whether the method estimates forces and torques (its Motion's grf / tau mean something)
     estimates_forces: bool = True
-    #: whether frame t depends on frames <= t only (streaming-capable)
+    #: whether the method runs chunk by chunk (frame t depends on frames <= t + lookahead(config):
+    #: streaming-capable with that latency); False: whole clips only (trajopt)
     causal: bool = True
 
     def make_config(self, fields: Mapping[str, Any] | None = None, **changes: Any):
