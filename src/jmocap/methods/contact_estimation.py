@@ -306,6 +306,14 @@ def load_contact_params(path) -> dict:
     return jax.tree.map(lambda x: np.asarray(x, np.float32), raw)
 
 
+def contact_params(params) -> dict:
+    """The contact MLP's variables a method uses: ``params["contacts"]`` where a run's
+    parameters carry their own, else the shipped ones (:func:`default_contact_params`)."""
+    if isinstance(params, dict) and "contacts" in params:
+        return params["contacts"]
+    return default_contact_params()
+
+
 @functools.cache
 def default_contact_params() -> dict:
     """The shipped contact-MLP variables (``jmocap/assets/contact_mlp.msgpack``, float16 on disk,
@@ -318,6 +326,7 @@ def default_contact_params() -> dict:
 
 __all__ = [
     "CONTACT_FLIP",
+    "contact_params",
     "HALF_OUT",
     "HALF_WINDOW",
     "LOWER_BODY",

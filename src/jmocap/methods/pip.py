@@ -268,8 +268,7 @@ def contact_probabilities(params: dict, inputs: ClipInputs, tp, config: PIPConfi
     if source == "mlp":
         from jmocap.methods import contact_estimation as CE
 
-        cparams = params["contacts"] if isinstance(params, dict) and "contacts" in params else CE.default_contact_params()
-        return CE.estimate_contacts(cparams, inputs, config.layout)
+        return CE.estimate_contacts(CE.contact_params(params), inputs, config.layout)
     raise AssertionError(source)
 
 

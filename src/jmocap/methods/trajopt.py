@@ -652,8 +652,7 @@ def contact_labels(params: dict, inputs: ClipInputs, tpnet_prob: Array, config: 
     if config.contact_source == "mlp":
         from jmocap.methods import contact_estimation as CE
 
-        cparams = params.get("contacts") if isinstance(params, dict) and "contacts" in params else CE.default_contact_params()
-        return CE.estimate_contacts(cparams, inputs, config.layout)
+        return CE.estimate_contacts(CE.contact_params(params), inputs, config.layout)
     raise ValueError(f"unknown contact_source {config.contact_source!r} (mlp, tpnet)")
 
 
