@@ -87,7 +87,7 @@ def load_clips(path: Path, clips: int):
 
     with Archive(path) as a:
         out = [a.load(n) for n in a.names()[:clips]]
-    bad = [c.name for c in out if c.gt_contacts is None or c.meta.get("contact_rule", {}).get("rule") != "force"]
+    bad = [c.name for c in out if c.gt_contacts is None or c.meta.get("contact_rule", {}).get("rule") != "force_floor"]
     if bad:
         sys.exit(f"{path}: clips without force contact labels: {bad[:5]}")
     return out
@@ -363,7 +363,7 @@ def main(argv=None) -> int:
         "command": "python experiments/train_contacts.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "archive": {"path": args.data, "clips": len(clips), "seed": args.seed, "physics": True,
                     "frames_per_clip": args.frames_per_clip, "frames": int(sum(c.num_frames for c in clips)),
-                    "contact_rule": "force"},
+                    "contact_rule": "force_floor"},
         "split": {"train_clips": [c.name for c in tr], "val_clips": [c.name for c in va]},
         "widths": list(ce.mlp_widths(best)),
         "hyper": {k: getattr(args, k) for k in ("lr", "weight_decay", "noise", "drop_max", "scale_jitter",

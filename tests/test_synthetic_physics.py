@@ -21,7 +21,8 @@ import pytest
 
 from jmocap.constants import FRICTION_MU, GRAVITY
 from jmocap.data import synthetic as S
-from jmocap.data.synthetic.physics import lever_split, simulation_model, tent_average, tent_weights
+from jmocap.data.synthetic.physics import (floor_split, lever_split, simulation_model, tent_average,
+                                           tent_weights)
 from jmocap.physics.qp import friction_pyramid_rows
 
 FRAMES = 75
@@ -126,13 +127,63 @@ def test_forces_in_the_friction_pyramid(clip):
     assert np.all(f[..., 2] >= -1e-3)
 
 
-def test_force_contact_labels(clip):
-    thr = clip.meta["contact_rule"]["min_vertical_force_bw"] * _weight(clip)
+def test_floor_split_gives_raised_sites_nothing():
+    heel, toe = np.array([0.0, 0.0, 0.0]), np.array([0.2, 0.0, 0.0])
+    pts = np.array([[0.05, 0.0, 0.0], [0.15, 0.0, 0.0]])
+    f = np.array([[1.0, 2.0, 300.0], [0.0, -1.0, 100.0]])
+    # both sites down: the lever rule
+    np.testing.assert_array_equal(floor_split(pts, f, heel, toe, 0.02), lever_split(pts, f, heel, toe))
+    # heel raised (on the ball of the foot): everything to the toe, and the reverse
+    up = heel + [0.0, 0.0, 0.08]
+    np.testing.assert_array_equal(floor_split(pts, f, up, toe, 0.02), [[0, 0, 0], f.sum(0)])
+    np.testing.assert_array_equal(floor_split(pts, f, heel, toe + [0, 0, 0.05], 0.02), [f.sum(0), [0, 0, 0]])
+    # neither down (a contact beyond both sites): the lower one
+    np.testing.assert_array_equal(floor_split(pts, f, up, toe + [0, 0, 0.03], 0.02), [[0, 0, 0], f.sum(0)])
+
+
+def _site_heights(clip):
+    """Heights (T, 4) of the contact sites at the frames, by MuJoCo C kinematics of ``gt_q``."""
+    ch = S.character(round(clip.height_m, 2))
+    d = mujoco.MjData(ch.mj)
+    out = []
+    for x in np.asarray(clip.gt_q, np.float64):
+        d.qpos[:] = x
+        mujoco.mj_kinematics(ch.mj, d)
+        out.append(d.site_xpos[list(ch.contact_sites), 2].copy())
+    return np.array(out)
+
+
+def test_force_floor_contact_labels(clip):
+    rule = clip.meta["contact_rule"]
+    assert rule["rule"] == "force_floor"
+    thr = rule["min_vertical_force_bw"] * _weight(clip)
     fz = clip.gt_grf[..., 2]
-    np.testing.assert_array_equal(clip.gt_contacts, (fz > thr).astype(np.float32))
+    z = _site_heights(clip)
+    loaded = np.repeat(clip.gt_foot_force[..., 2] > thr, 2, axis=1)
+    want = (fz > thr) | (loaded & (z <= rule["site_floor_m"] + 1e-4))  # float32 storage of gt_q
+    np.testing.assert_array_equal(clip.gt_contacts, want.astype(np.float32))
     off = clip.gt_contacts == 0
     assert np.all(np.linalg.norm(clip.gt_grf[off], axis=-1) <= (1 + FRICTION_MU) * thr + 1e-3)
-    assert clip.gt_contacts.any()
+    assert clip.gt_contacts.any() and off.any()
+
+
+def test_no_force_at_a_raised_site(clip):
+    """A site carries force only when it is on the floor, or when it is the lower site of a
+    foot touching the floor with neither site down (a contact beyond both). The frame value
+    averages the substeps of +-1 frame, so a site counts as down when it is on this frame or on
+    a neighbouring one."""
+    thr = clip.meta["contact_rule"]["min_vertical_force_bw"] * _weight(clip)
+    floor_m = clip.meta["contact_rule"]["site_floor_m"]
+    z = _site_heights(clip)
+    near = z.copy()
+    near[1:] = np.minimum(near[1:], z[:-1])
+    near[:-1] = np.minimum(near[:-1], z[1:])
+    down = near <= floor_m + 1e-4
+    pair = z.reshape(-1, 2, 2)
+    lower = np.stack([pair[..., 0] <= pair[..., 1], pair[..., 1] < pair[..., 0]], -1).reshape(-1, 4)
+    neither = np.repeat(~down.reshape(-1, 2, 2).any(-1), 2, axis=1)
+    loaded = clip.gt_grf[..., 2] > thr
+    assert not np.any(loaded & ~down & ~(neither & lower))
 
 
 def test_per_foot_force_cop_free_moment(clip):

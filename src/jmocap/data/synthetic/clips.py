@@ -115,7 +115,7 @@ def generate_clip(seed: int, index: int = 0, config: SynthConfig = SynthConfig()
                 qd = velocities(ch.mj, q, config.fps)
             kp3d, contacts = _ground_truth(ch, q, layout, config.fps)
             if config.physics:
-                contacts = sim["contacts"]  # the force rule (docs/data.md)
+                contacts = sim["contacts"]  # force and floor (docs/data.md)
                 heights = site_trajectories(ch, q, ch.check_sites)[..., 2]
                 meta["physics"]["min_site_height"] = float(heights.min())
             K, size, E, cam_info = sample_camera(rng, kp3d, config.camera)
@@ -175,10 +175,11 @@ def generate_clip(seed: int, index: int = 0, config: SynthConfig = SynthConfig()
 
 
 def _contact_rule(config: SynthConfig) -> dict:
-    """How ``gt_contacts`` was labelled: the force rule for simulated clips, Rempe et al.'s
+    """How ``gt_contacts`` was labelled: force and floor for simulated clips, Rempe et al.'s
     geometric rule otherwise (docs/data.md)."""
     if config.physics:
-        return dict(rule="force", min_vertical_force_bw=config.physics_cfg.contact_force_threshold)
+        return dict(rule="force_floor", min_vertical_force_bw=config.physics_cfg.contact_force_threshold,
+                    site_floor_m=config.physics_cfg.site_floor_m)
     return dict(rule="geometric", max_step_m=CONTACT_MAX_STEP_M, max_height_m=CONTACT_MAX_HEIGHT_M,
                 frame0="displacement to frame 1")
 

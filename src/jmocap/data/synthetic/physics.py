@@ -11,7 +11,7 @@ a penalised root residual is switched on only while the root pose error exceeds
 :attr:`PhysicsConfig.rescue_pos_m` / :attr:`PhysicsConfig.rescue_rot_deg` (recorded as
 ``residual``). Forces are sampled at the frames by the tent average that matches central
 differences of the frame positions (:func:`tent_average`); per-site forces come from a lever
-split of each contact force between its foot's heel and toe sites (:func:`lever_split`), per-foot
+split of each contact force between its foot's heel and toe sites on the floor (:func:`floor_split`), per-foot
 force, centre of pressure and free moment from MuJoCo's contact points
 (:func:`foot_cop_free_moment`). :class:`PhysicsConfig` holds the settings; ``docs/data.md``
 describes the whole design.
@@ -63,6 +63,7 @@ class PhysicsConfig:
     rescue_off: float = 0.5
     w_residual: float = 1.0
     contact_force_threshold: float = 0.01  # fraction of body weight: force contact label, CoP
+    site_floor_m: float = 0.02  # a contact site this high or lower may take force (floor_split)
     contact_timeconst: float = 0.008  # MuJoCo solref time constant of the contacts (s)
     fall_height: float = 0.5  # fraction of the standing pelvis height
     fall_tilt_deg: float = 60.0
@@ -145,6 +146,25 @@ def lever_split(points: np.ndarray, forces: np.ndarray, heel: np.ndarray, toe: n
     return np.stack([((1 - s)[:, None] * forces).sum(0), (s[:, None] * forces).sum(0)])
 
 
+def floor_split(points: np.ndarray, forces: np.ndarray, heel: np.ndarray, toe: np.ndarray,
+                floor_m: float) -> np.ndarray:
+    """Split contact forces (k, 3) at points (k, 3) between a foot's heel and toe sites (3,) that
+    are on the floor: :func:`lever_split` when both sites are within ``floor_m`` of the floor
+    (z = 0), everything to the one that is when only one is, and to the lower site when neither
+    is. Returns (2, 3): heel, toe.
+
+    The foot's force is always kept; its moment as :func:`lever_split` keeps it when both sites
+    are down. A raised site never takes a share: on the ball of the foot (heel up) the whole
+    force goes to the toe site, where the lever rule would give the raised heel 5-15 % of it
+    (a point in the air "in contact")."""
+    down = np.array([heel[2] <= floor_m, toe[2] <= floor_m])
+    if down.all():
+        return lever_split(points, forces, heel, toe)
+    out = np.zeros((2, 3))
+    out[int(toe[2] < heel[2]) if not down.any() else int(down[1])] = forces.sum(0)
+    return out
+
+
 def foot_cop_free_moment(force: np.ndarray, moment: np.ndarray, fallback: np.ndarray, threshold: float):
     """Centre of pressure on the floor (..., 3) and free moment (...) of a foot's force (..., 3)
     and moment about the world origin (..., 3) (the force-plate formulas ``x = -M_y / F_z``,
@@ -159,9 +179,19 @@ def foot_cop_free_moment(force: np.ndarray, moment: np.ndarray, fallback: np.nda
     return np.stack([x, y, np.zeros_like(x)], axis=-1), tau
 
 
-def force_contact_labels(grf: np.ndarray, threshold: float) -> np.ndarray:
-    """Contact labels (T, 4) from per-site forces (T, 4, 3): vertical force above ``threshold`` N."""
-    return (grf[..., 2] > threshold).astype(np.float32)
+def force_contact_labels(grf: np.ndarray, foot_force: np.ndarray, site_z: np.ndarray, threshold: float,
+                         floor_m: float) -> np.ndarray:
+    """Contact labels (T, 4) of the sites (L heel, L toe, R heel, R toe): a site is in contact when
+    its vertical force (``grf`` (T, 4, 3), from :func:`floor_split`) exceeds ``threshold`` N, or
+    when its foot's vertical force (``foot_force`` (T, 2, 3)) does and the site is on the floor
+    (``site_z`` (T, 4) at most ``floor_m``: the sites that may take the foot's force).
+
+    So every site with force is labelled in contact, and a labelled site is on the floor or
+    carries force; a site of a loaded foot that rests on the floor while the load goes through
+    the other site (a flat foot with the centre of pressure at the heel) is in contact with a
+    small force, as Signorini's condition allows."""
+    loaded = np.repeat(foot_force[..., 2] > threshold, 2, axis=-1)
+    return ((grf[..., 2] > threshold) | (loaded & (site_z <= floor_m))).astype(np.float32)
 
 
 @dataclass
@@ -329,6 +359,7 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     sub_moment = np.zeros((S, 2, 3))
     sub_mid = np.zeros((S, 2, 3))
     rescue_sub = np.zeros(S, bool)
+    site_z = np.zeros((T, 4))
     root_err = np.zeros((T, 2))
     nonfoot = 0
     rescue = False
@@ -359,6 +390,8 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
             nonfoot += other
             A, Jc = _contact_jacobians(mj, d, con, E, jp)
             sp = d.site_xpos[sites].copy()
+            if i == 0:
+                site_z[k] = sp[:, 2]
             mujoco.mj_fullM(mj, d, M)
             tau = _control(M, d.qfrc_bias, A, Jc, Jc @ d.qvel, a_des, sw, cfg, mass, rescue)
             d.qfrc_applied[:] = tau
@@ -371,7 +404,8 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
                 heel, toe = sp[2 * f], sp[2 * f + 1]
                 sub_mid[s, f] = (heel + toe) / 2
                 if on.any():
-                    sub_grf[s, 2 * f: 2 * f + 2] = lever_split(con.pos[on], fw[on], heel, toe)
+                    sub_grf[s, 2 * f: 2 * f + 2] = floor_split(con.pos[on], fw[on], heel, toe,
+                                                               cfg.site_floor_m)
                     sub_foot[s, f] = fw[on].sum(0)
                     sub_moment[s, f] = np.cross(con.pos[on], fw[on]).sum(0)
         up = d.xmat[ch.pelvis].reshape(3, 3)[2, 2]
@@ -394,6 +428,7 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         friction_mu=FRICTION_MU,
         friction_cone=FRICTION_CONE,
         contact_force_threshold_bw=cfg.contact_force_threshold,
+        site_floor_m=cfg.site_floor_m,
         residual_frames=int(res_frames.sum()),
         residual_frame_share=float(res_frames.mean()),
         residual_substep_share=float(rescue_sub.mean()),
@@ -409,5 +444,6 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         nonfoot_contacts=int(nonfoot),
     )
     return dict(q=q_out, qd=qd_out, tau=tau, residual=residual, grf=grf, foot_force=foot_force,
-                cop=cop, free_moment=free_moment, contacts=force_contact_labels(grf, threshold),
+                cop=cop, free_moment=free_moment,
+                contacts=force_contact_labels(grf, foot_force, site_z, threshold, cfg.site_floor_m),
                 stats=stats)
