@@ -115,14 +115,14 @@ def window_labels(labels: np.ndarray, T: int):
     return labels[np.clip(idx, 0, T - 1)].astype(np.float32), ok.astype(np.float32)
 
 
-def clip_arrays(clips, flip: bool = True):
-    """Features (N, 351), window labels (N, 5, 4) and label masks (N, 5) of every real target
-    frame of the clips (and of their mirror images)."""
+def clip_arrays(clips, flip: bool = True, window: int = 9):
+    """Features (N, window x 39), window labels (N, 5, 4) and label masks (N, 5) of every real
+    target frame of the clips (and of their mirror images)."""
     import jax
 
     from jmocap.methods import contact_estimation as ce
 
-    feats = jax.jit(ce.contact_features, static_argnums=3)
+    feats = jax.jit(ce.contact_features, static_argnums=(3, 4))
     flipk = jax.jit(ce.flip_keypoints, static_argnums=2)
     X, Y, M = [], [], []
     for c in clips:
@@ -133,11 +133,11 @@ def clip_arrays(clips, flip: bool = True):
         mask = np.arange(L) < T
         size = np.asarray(c.image_size, np.float32)
         y, m = window_labels(np.asarray(c.gt_contacts), T)
-        X.append(np.asarray(feats(kp, size, mask, c.layout))[:T])
+        X.append(np.asarray(feats(kp, size, mask, c.layout, window))[:T])
         Y.append(y)
         M.append(m)
         if flip:
-            X.append(np.asarray(feats(flipk(kp, size, c.layout), size, mask, c.layout))[:T])
+            X.append(np.asarray(feats(flipk(kp, size, c.layout), size, mask, c.layout, window))[:T])
             Y.append(np.asarray(ce.flip_contacts(y)))
             M.append(m)
     return np.concatenate(X), np.concatenate(Y), np.concatenate(M)
@@ -160,7 +160,7 @@ def make_steps(lr: float, weight_decay: float, noise: float, drop_max: float, sc
     def augment(x, key):
         k1, k2, k3, k4 = jax.random.split(key, 4)
         B = x.shape[0]
-        f = x.reshape(B, ce.WINDOW, ce.NUM_JOINTS, 3)
+        f = x.reshape(B, -1, ce.NUM_JOINTS, 3)
         vis = f[..., 2] > 0
         scale = jax.random.uniform(k4, (B, 1, 1, 1), minval=1 - scale_jitter, maxval=1 + scale_jitter)
         xy = f[..., :2] * scale + noise * jax.random.normal(k1, (*f.shape[:-1], 2))
@@ -217,7 +217,7 @@ def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
 
     tx, train_step, eval_batch = make_steps(args.lr, args.weight_decay, args.noise, args.drop_max,
                                             args.scale_jitter)
-    variables = ce.init_contact_params(jax.random.PRNGKey(args.seed), tuple(args.widths))
+    variables = ce.init_contact_params(jax.random.PRNGKey(args.seed), tuple(args.widths), args.window)
     state = {
         "params": variables["params"], "batch_stats": variables["batch_stats"],
         "opt": tx.init(variables["params"]), "epoch": 0, "best_val": float("inf"), "best_epoch": -1,
@@ -309,7 +309,9 @@ def voted_f1(variables, clips) -> dict:
         preds.append(np.asarray(fn(variables, inp, c.layout))[: c.num_frames] > 0.5)
         gts.append(np.asarray(c.gt_contacts) > 0.5)
     pr, gt = np.concatenate(preds), np.concatenate(gts)
-    return {"f1": round(_f1(pr, gt), 2), "accuracy": round(100.0 * float(np.mean(pr == gt)), 2)}
+    bacc = 50.0 * (np.sum(pr & gt) / max(np.sum(gt), 1) + np.sum(~pr & ~gt) / max(np.sum(~gt), 1))
+    return {"f1": round(_f1(pr, gt), 2), "accuracy": round(100.0 * float(np.mean(pr == gt)), 2),
+            "balanced_accuracy": round(float(bacc), 2)}
 
 
 def main(argv=None) -> int:
@@ -322,6 +324,7 @@ def main(argv=None) -> int:
     ap.add_argument("--run", default="runs/contacts", help="checkpoint, log and outputs")
     ap.add_argument("--val-fraction", type=float, default=0.15)
     ap.add_argument("--widths", type=int, nargs="+", default=[512, 256, 128, 32])
+    ap.add_argument("--window", type=int, default=9, help="input window (odd number of frames)")
     ap.add_argument("--lr", type=float, default=3e-4)
     ap.add_argument("--weight-decay", type=float, default=1e-4)
     ap.add_argument("--noise", type=float, default=0.005)
@@ -331,6 +334,11 @@ def main(argv=None) -> int:
     ap.add_argument("--patience", type=int, default=6)
     ap.add_argument("--ship", action="store_true", help="copy the weights into the package (float16)")
     args = ap.parse_args(argv)
+    if args.ship:
+        from jmocap.methods.contact_estimation import WINDOW
+        if args.window != WINDOW:
+            sys.exit(f"--ship needs --window {WINDOW} (jmocap.methods.contact_estimation.WINDOW, which "
+                     f"sizes the methods' history and lookahead); change that constant first")
     if args.seed == HELDOUT_SEED:
         sys.exit(f"seed {HELDOUT_SEED} is the held-out evaluation archive's: train on another seed")
     data, run = ROOT / args.data, ROOT / args.run
@@ -343,8 +351,8 @@ def main(argv=None) -> int:
     tr, va = split(clips, args.val_fraction, args.seed)
     log(f"{len(clips)} clips ({sum(c.num_frames for c in clips)} frames): {len(tr)} train, {len(va)} validation")
     t0 = time.time()
-    Xtr, Ytr, Mtr = clip_arrays(tr, flip=True)
-    Xva, Yva, Mva = clip_arrays(va, flip=False)
+    Xtr, Ytr, Mtr = clip_arrays(tr, flip=True, window=args.window)
+    Xva, Yva, Mva = clip_arrays(va, flip=False, window=args.window)
     feat_s = time.time() - t0
     log(f"features: {len(Xtr)} training windows (with mirrored), {len(Xva)} validation ({feat_s:.0f} s)")
     t0 = time.time()
@@ -366,6 +374,7 @@ def main(argv=None) -> int:
                     "contact_rule": "force_floor"},
         "split": {"train_clips": [c.name for c in tr], "val_clips": [c.name for c in va]},
         "widths": list(ce.mlp_widths(best)),
+        "window": ce.window_of(best),
         "hyper": {k: getattr(args, k) for k in ("lr", "weight_decay", "noise", "drop_max", "scale_jitter",
                                                 "patience", "max_epochs", "val_fraction")},
         "best_epoch": best_epoch, "epochs_run": epochs,

@@ -243,3 +243,26 @@ def test_shipped_weights_beat_the_majority_class(params, clips):
           f"{np.mean(majority == gt):.3f}, kinds {[c.meta['kind'] for c in clips]}")
     assert f1 > base, (f1, base)
     assert np.mean(pred == gt) > np.mean(majority == gt)
+
+
+def test_window_is_read_from_the_weights_and_other_windows_are_refused_by_the_methods(params):
+    assert ce.window_of(params) == ce.WINDOW
+    wide = ce.init_contact_params(jax.random.PRNGKey(0), (16, 8), window=15)
+    assert ce.window_of(wide) == 15
+    kp = np.stack([_pose((3.0 * t, 0.0)) for t in range(20)])
+    f = np.asarray(jax.jit(ce.contact_features, static_argnums=(3, 4))(
+        kp, np.array([640.0, 480.0]), np.ones(20, bool), "body25", 15))
+    assert f.shape == (20, 15 * ce.NUM_JOINTS * 3)
+    # slot 7 of a 15-frame window is the target frame, as slot 4 of the 9-frame one (the body
+    # size is a median over constant leg lengths, so it is the same here)
+    f9 = np.asarray(features(kp, np.array([640.0, 480.0]), np.ones(20, bool)))
+    np.testing.assert_allclose(f.reshape(20, 15, -1)[:, 7], f9.reshape(20, 9, -1)[:, 4], atol=1e-6)
+    inp = ClipInputs(keypoints=kp, intrinsics=np.array([500.0, 500.0, 320.0, 240.0], np.float32),
+                     image_size=np.array([640.0, 480.0], np.float32), extrinsics=np.eye(4, dtype=np.float32),
+                     fps=np.float32(30.0), mask=np.ones(20, bool))
+    out = np.asarray(ce.estimate_contacts(wide, inp))
+    assert out.shape == (20, 4) and np.all((out >= 0) & (out <= 1))
+    with pytest.raises(ValueError, match="15-frame window"):
+        ce.contact_params({"contacts": wide})
+    with pytest.raises(ValueError, match="odd"):
+        ce.contact_features(kp, np.array([640.0, 480.0]), np.ones(20, bool), "body25", 8)

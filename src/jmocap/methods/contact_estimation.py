@@ -102,8 +102,9 @@ def window_frames(mask: Array, half: int = HALF_WINDOW) -> Array:
 
 
 def _root(xy: Array, vis: Array) -> Array:
-    """Root (T, 2) of the target frames: window (T, 9, 13, 2), visibility (T, 9, 13)."""
-    c_xy, c_vis = xy[:, HALF_WINDOW], vis[:, HALF_WINDOW].astype(xy.dtype)  # (T, 13, 2), (T, 13)
+    """Root (T, 2) of the target frames: window (T, w, 13, 2), visibility (T, w, 13)."""
+    c = xy.shape[1] // 2
+    c_xy, c_vis = xy[:, c], vis[:, c].astype(xy.dtype)  # (T, 13, 2), (T, 13)
 
     def mean(p, w):  # p (T, K, 2), w (T, K)
         n = jnp.sum(w, -1)
@@ -144,19 +145,24 @@ def body_size(xy: Array, vis: Array, image_size: Array) -> Array:
     return jnp.maximum(size, 1e-3 * jnp.max(image_size))
 
 
-def contact_features(keypoints: Array, image_size: Array, mask: Array, layout: str = "body25") -> Array:
-    """Network input (T, 351) per target frame: a window of 9 frames x 13 lower-body joints x
-    (x, y, confidence), positions relative to the target frame's root and divided by the
-    window's body size (module docstring); undetected joints are zeros.
+def contact_features(keypoints: Array, image_size: Array, mask: Array, layout: str = "body25",
+                     window: int = WINDOW) -> Array:
+    """Network input (T, window x 39) per target frame: a window of ``window`` frames (odd,
+    centred; 9 by default) x 13 lower-body joints x (x, y, confidence), positions relative to
+    the target frame's root and divided by the window's body size (module docstring);
+    undetected joints are zeros.
 
     ``keypoints`` (T, J, 3): pixels and confidence in the ``layout`` (BODY_25); ``image_size``
     (2,) width, height; ``mask`` (T,) real frames (padded frames replicate the nearest real one).
+    ``layout`` and ``window`` are static.
     """
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"the contact window must be an odd number of frames, got {window}")
     sel = lower_body_indices(layout)
     kp = jnp.asarray(keypoints)[:, sel]
     kp = kp.astype(jnp.promote_types(kp.dtype, jnp.float32))
     T = kp.shape[0]
-    win = kp[window_frames(jnp.asarray(mask, bool))]  # (T, 9, 13, 3)
+    win = kp[window_frames(jnp.asarray(mask, bool), window // 2)]  # (T, w, 13, 3)
     xy, conf = win[..., :2], win[..., 2]
     vis = conf > 0
     root = _root(xy, vis)
@@ -164,13 +170,13 @@ def contact_features(keypoints: Array, image_size: Array, mask: Array, layout: s
     rel = (xy - root[:, None, None, :]) / size[:, None, None, None]
     rel = jnp.clip(rel, -FEATURE_CLIP, FEATURE_CLIP)
     feats = jnp.concatenate([rel, conf[..., None]], axis=-1) * vis[..., None]
-    return feats.reshape(T, NUM_FEATURES)
+    return feats.reshape(T, window * NUM_JOINTS * 3)
 
 
 def flip_features(features: Array) -> Array:
     """The features of the horizontally mirrored keypoints: x negated, left/right joints
     swapped (equal to :func:`contact_features` of :func:`flip_keypoints`)."""
-    f = jnp.asarray(features).reshape(*jnp.shape(features)[:-1], WINDOW, NUM_JOINTS, 3)
+    f = jnp.asarray(features).reshape(*jnp.shape(features)[:-1], -1, NUM_JOINTS, 3)
     perm = np.arange(NUM_JOINTS)
     for a, b in LOWER_BODY_FLIP:
         perm[a], perm[b] = b, a
@@ -204,14 +210,23 @@ def mlp_widths(params) -> tuple[int, ...]:
     return tuple(int(np.shape(p[f"Dense_{i}"]["kernel"])[1]) for i in range(n - 1))
 
 
-def init_contact_params(key, widths: tuple[int, ...] = ContactMLP.widths) -> dict:
-    """Fresh variables ``{"params", "batch_stats"}`` of the contact MLP."""
-    return ContactMLP(widths=tuple(widths)).init(key, jnp.zeros((1, NUM_FEATURES)), train=False)
+def window_of(params) -> int:
+    """The input window (frames) of a :class:`~jmocap.nets.ContactMLP` from its parameters."""
+    rows = int(np.shape(params["params"]["Dense_0"]["kernel"])[0])
+    if rows % (NUM_JOINTS * 3) or (rows // (NUM_JOINTS * 3)) % 2 == 0:
+        raise ValueError(f"contact-MLP input of {rows} features is not an odd window of "
+                         f"{NUM_JOINTS} joints x 3")
+    return rows // (NUM_JOINTS * 3)
+
+
+def init_contact_params(key, widths: tuple[int, ...] = ContactMLP.widths, window: int = WINDOW) -> dict:
+    """Fresh variables ``{"params", "batch_stats"}`` of the contact MLP for a ``window``-frame input."""
+    return ContactMLP(widths=tuple(widths)).init(key, jnp.zeros((1, window * NUM_JOINTS * 3)), train=False)
 
 
 def window_logits(params, features: Array, train: bool = False, rngs=None):
-    """Contact logits (..., 5, 4) of frames ``t-2 .. t+2`` for the features (..., 351) of target
-    frames ``t``. ``params`` are the MLP's variables (``params`` and ``batch_stats``).
+    """Contact logits (..., 5, 4) of frames ``t-2 .. t+2`` for the features (..., w x 39) of
+    target frames ``t``. ``params`` are the MLP's variables (``params`` and ``batch_stats``).
 
     With ``train=True`` (dropout on, batch statistics of this batch; ``rngs={"dropout": key}``)
     returns ``(logits, {"batch_stats": updated running statistics})``.
@@ -253,7 +268,7 @@ def vote(window_probs: Array, mask: Array) -> Array:
 
 def window_probabilities(params, inputs: ClipInputs, layout: str = "body25") -> Array:
     """Contact probabilities (T, 5, 4) of every target frame's 5-frame window."""
-    f = contact_features(inputs.keypoints, inputs.image_size, inputs.mask, layout)
+    f = contact_features(inputs.keypoints, inputs.image_size, inputs.mask, layout, window_of(params))
     return jax.nn.sigmoid(window_logits(params, f))
 
 
@@ -308,8 +323,15 @@ def load_contact_params(path) -> dict:
 
 def contact_params(params) -> dict:
     """The contact MLP's variables a method uses: ``params["contacts"]`` where a run's
-    parameters carry their own, else the shipped ones (:func:`default_contact_params`)."""
+    parameters carry their own, else the shipped ones (:func:`default_contact_params`).
+
+    The methods' history and lookahead (``pip``'s chunking) are sized for :data:`WINDOW`, so
+    weights with another input window are refused here rather than run with too little context."""
     if isinstance(params, dict) and "contacts" in params:
+        got = window_of(params["contacts"])
+        if got != WINDOW:
+            raise ValueError(f"params['contacts'] reads a {got}-frame window; the methods are sized for "
+                             f"jmocap.methods.contact_estimation.WINDOW = {WINDOW}")
         return params["contacts"]
     return default_contact_params()
 
@@ -351,5 +373,6 @@ __all__ = [
     "vote",
     "window_frames",
     "window_logits",
+    "window_of",
     "window_probabilities",
 ]
