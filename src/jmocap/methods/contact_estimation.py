@@ -59,8 +59,10 @@ FEATURE_CLIP = 4.0
 #: left/right contact points swap under a horizontal flip: (L heel, L toe, R heel, R toe)
 CONTACT_FLIP = (2, 3, 0, 1)
 
-_ROOT, _HIPS = 0, (1, 4)
-_LEGS = ((1, 2, 3), (4, 5, 6))  # (hip, knee, ankle) right, left: indices into LOWER_BODY
+_ROOT = LOWER_BODY.index("MidHip")
+_HIPS = (LOWER_BODY.index("RHip"), LOWER_BODY.index("LHip"))
+# (hip, knee, ankle) right, left: indices into LOWER_BODY
+_LEGS = tuple(tuple(LOWER_BODY.index(s + j) for j in ("Hip", "Knee", "Ankle")) for s in "RL")
 #: left/right pairs among the 13 joints (indices into LOWER_BODY)
 LOWER_BODY_FLIP = tuple((LOWER_BODY.index(n), LOWER_BODY.index("L" + n[1:])) for n in LOWER_BODY
                         if n.startswith("R"))
