@@ -90,6 +90,31 @@ def polished_projection(W, G, v, lower, tol: float = 1e-14, tight: float = 1e-6)
     return x, status
 
 
+def kkt_optimal(W, G, v, lower, x, tight: float = 1e-8, tol: float = 1e-9) -> bool:
+    """Whether ``x`` solves ``min 0.5 (x - v)^T W (x - v)  s.t.  G x >= lower`` (W positive
+    definite), checked from the KKT conditions in float64 numpy, independently of any solver:
+    feasible (slack >= -tol scale), and the gradient ``W (x - v)`` a non-negative combination of
+    the active rows (slack <= ``tight`` scale; least-squares multipliers >= -tol |grad|, relative
+    stationarity residual <= tol). For a strictly convex QP these conditions are sufficient.
+    The fallback reference where Clarabel stalls (MaxIterations) on an instance."""
+    W = 0.5 * (np.asarray(W, np.float64) + np.asarray(W, np.float64).T)
+    G, v, lower, x = (np.asarray(a, np.float64) for a in (G, v, lower, x))
+    fin = np.isfinite(lower) & np.any(G != 0, axis=1)
+    Gf, lf = G[fin], lower[fin]
+    scale = 1.0 + np.abs(lf) + np.abs(Gf) @ np.abs(x)
+    slack = Gf @ x - lf
+    if slack.size and slack.min() < -tol * scale.max():
+        return False
+    grad = W @ (x - v)
+    gnorm = max(np.linalg.norm(grad), 1e-300)
+    active = slack <= tight * scale
+    if not active.any():
+        return np.linalg.norm(grad) <= tol * (1.0 + np.linalg.norm(W @ v))
+    A = Gf[active]
+    lam = np.linalg.lstsq(A.T, grad, rcond=None)[0]
+    return bool(lam.min() >= -tol * gnorm and np.linalg.norm(A.T @ lam - grad) <= tol * gnorm)
+
+
 def random_spd(rng, n: int, cond: float):
     """Random SPD matrix with eigenvalues log-spaced in [1, cond], in a random orthogonal basis."""
     Q, _ = np.linalg.qr(rng.normal(size=(n, n)))

@@ -37,7 +37,7 @@ from jmocap.physics.qp import (
     solve_projection_info,
     tangent_basis,
 )
-from qp_reference import clarabel_projection, random_instance
+from qp_reference import clarabel_projection, kkt_optimal, polished_projection, random_instance
 
 
 @contextlib.contextmanager
@@ -505,3 +505,22 @@ def test_auto_plan_switches_match_clarabel(x64):
             assert info.active.any(), "the instances must have active constraints"
             np.testing.assert_allclose(info.x, np.stack(refs), rtol=0, atol=1e-6,
                                        err_msg=f"m={m} iters={iters}")
+
+
+def test_kkt_reference_accepts_clarabels_optimum_and_rejects_others():
+    """The numpy KKT check (the tracking test's fallback reference where Clarabel stalls) agrees
+    with Clarabel: its polished optimum passes, a perturbed or a merely feasible point fails."""
+    rng = np.random.default_rng(3)
+    checked = 0
+    for _ in range(20):
+        W, _, G, v, lower = random_instance(rng, 12, 10, cond=1e3, degenerate=False, feasible_at_v=False)
+        x, status = polished_projection(W, G, v, lower)
+        if status != "polished":
+            continue
+        assert kkt_optimal(W, G, v, lower, x)
+        assert not kkt_optimal(W, G, v, lower, x + 1e-3 * rng.normal(size=x.shape))
+        fin = np.isfinite(lower)
+        if np.any(G[fin] @ v < lower[fin] - 1e-6):  # v itself (infeasible here) is not optimal
+            assert not kkt_optimal(W, G, v, lower, v)
+        checked += 1
+    assert checked >= 10, checked

@@ -24,7 +24,7 @@ from jmocap.physics.qp import solve_projection_info
 from jmocap.physics.tracking import contact_state, point_bias_acceleration, solve_qp
 from jmocap.pipeline import subject_model
 from jmocap.weights import load_run_params
-from qp_reference import clarabel_projection, polished_projection
+from qp_reference import clarabel_projection, kkt_optimal, polished_projection
 
 DEMO = files("jmocap") / "assets/demo/ground_truth"
 
@@ -117,7 +117,7 @@ def test_tracking_qp_matches_clarabel_on_cycle_states(enable_x64, stride):
     exact solver certifies every one; on every ``stride``-th frame it reaches Clarabel's optimum
     (stride 1, ``make test-slow``: >= 1,000 QPs; stride 5 in the default suite: >= 200)."""
     config, runs = _demo_cycle(("demo_walk", "demo_run"))
-    n = 0
+    n = n_kkt = 0
     patterns = jnp.array([[1] * 8, [0] * 8, [1, 1, 0, 0, 1, 1, 0, 0], [0, 0, 1, 1, 0, 0, 1, 1]], bool)
     for model, ref, fo, dt in runs:
         T = fo.q.shape[0]
@@ -131,8 +131,15 @@ def test_tracking_qp_matches_clarabel_on_cycle_states(enable_x64, stride):
             for t in range(0, T, stride):
                 qp = jax.tree.map(lambda a, t=t: np.asarray(a[t]), qps)
                 x_ref, status = polished_projection(qp.H, qp.G, qp.v, qp.lower)
-                assert status in ("polished", "Solved", "AlmostSolved"), status
                 x = np.asarray(xs[t], np.float64)
+                if status not in ("polished", "Solved", "AlmostSolved"):
+                    # Clarabel stalls (MaxIterations, at any tolerance) on a few instances whose
+                    # slacks span 1e-14 to 4e3: there the reference is the KKT conditions
+                    # checked in numpy (sufficient for this strictly convex QP)
+                    assert kkt_optimal(qp.H, qp.G, qp.v, qp.lower, x), (t, status)
+                    n_kkt += 1
+                    n += 1
+                    continue
                 # feasible, and the same optimal value (the optimum is unique; x itself is
                 # as accurate as H's conditioning allows)
                 finite = np.isfinite(qp.lower)
@@ -142,6 +149,7 @@ def test_tracking_qp_matches_clarabel_on_cycle_states(enable_x64, stride):
                 assert f <= f_ref + 1e-8 * (1 + abs(f_ref)), (t, f, f_ref)
                 n += 1
     assert n >= 1000 // stride, n
+    assert n_kkt <= 0.02 * n, (n_kkt, n)  # Clarabel is the reference on all but a few
 
 
 def test_float32_cycle_is_certified_and_finite():
