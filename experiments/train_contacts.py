@@ -5,10 +5,10 @@
 1. Generates the training archive if it is missing or short (resumable, deterministic):
    ``jmocap data synth --out data/contacts_train --clips 200 --seed 7 --physics
    --frames-per-clip 60:150`` -- clips tracked in MuJoCo simulation, whose ``gt_contacts`` are
-   the *force* rule (vertical force > 1 % body weight), like the held-out archive
+   labelled by *force and floor* (docs/data.md), like the held-out archive
    ``data/heldout`` (seed 123, which this script refuses: never train or tune on it). Kinematic
    clips (no ``--physics``) label contacts by Rempe's geometric rule instead, which disagrees
-   with the force rule on 17-43 % of the contact-point frames (measured on four clips of seed 7).
+   with the physics labels on a large share of the contact-point frames.
    Short clips: one subject and one camera per clip, so more of both per generated frame; 100
    clips of 150-300 frames (the same number of frames) gave a worse model on validation
    (docs/method.md, "Contact estimation"). An archive made with other settings is refused.
@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -55,7 +56,7 @@ def log(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
-def ensure_archive(path: Path, clips: int, seed: int, frames: str) -> float:
+def ensure_archive(path: Path, clips: int, seed: int, frames: str, workers: int = 1) -> float:
     """Generate (or resume) the training archive; returns the seconds spent."""
     from jmocap.cli import main as jmocap
 
@@ -74,7 +75,7 @@ def ensure_archive(path: Path, clips: int, seed: int, frames: str) -> float:
     if have >= clips:
         return 0.0
     cmd = ["data", "synth", "--out", str(path), "--clips", str(clips), "--seed", str(seed), "--physics",
-           "--frames-per-clip", frames, "--workers", "1", "--quiet"]
+           "--frames-per-clip", frames, "--workers", str(workers), "--quiet"]
     log("+ jmocap " + " ".join(cmd))
     t0 = time.time()
     if jmocap(cmd) != 0:
@@ -89,7 +90,7 @@ def load_clips(path: Path, clips: int):
         out = [a.load(n) for n in a.names()[:clips]]
     bad = [c.name for c in out if c.gt_contacts is None or c.meta.get("contact_rule", {}).get("rule") != "force_floor"]
     if bad:
-        sys.exit(f"{path}: clips without force contact labels: {bad[:5]}")
+        sys.exit(f"{path}: clips without force-and-floor contact labels: {bad[:5]}")
     return out
 
 
@@ -322,6 +323,7 @@ def main(argv=None) -> int:
     ap.add_argument("--frames-per-clip", default="60:150",
                     help="clip lengths (short clips: more subjects and cameras per generated frame)")
     ap.add_argument("--run", default="runs/contacts", help="checkpoint, log and outputs")
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="generation processes")
     ap.add_argument("--val-fraction", type=float, default=0.15)
     ap.add_argument("--widths", type=int, nargs="+", default=[512, 256, 128, 32])
     ap.add_argument("--window", type=int, default=9, help="input window (odd number of frames)")
@@ -346,7 +348,7 @@ def main(argv=None) -> int:
         sys.exit("data/heldout is the held-out evaluation archive: never train on it")
     run.mkdir(parents=True, exist_ok=True)
     t_start = time.time()
-    gen_s = ensure_archive(data, args.clips, args.seed, args.frames_per_clip)
+    gen_s = ensure_archive(data, args.clips, args.seed, args.frames_per_clip, args.workers)
     clips = load_clips(data, args.clips)
     tr, va = split(clips, args.val_fraction, args.seed)
     log(f"{len(clips)} clips ({sum(c.num_frames for c in clips)} frames): {len(tr)} train, {len(va)} validation")

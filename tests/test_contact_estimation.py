@@ -192,7 +192,7 @@ def test_flip_features_equal_features_of_flipped_keypoints():
 
 @pytest.fixture(scope="module")
 def clips():
-    """Three short synthetic clips tracked in simulation (force contact labels, like the held-out
+    """Three short synthetic clips tracked in simulation (force-and-floor contact labels, like the held-out
     archive), seed 2024 (neither the training seed 7 nor the held-out 123)."""
     from jmocap.data import synthetic as S
 

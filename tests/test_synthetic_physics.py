@@ -21,8 +21,13 @@ import pytest
 
 from jmocap.constants import FRICTION_MU, GRAVITY
 from jmocap.data import synthetic as S
-from jmocap.data.synthetic.physics import (floor_split, lever_split, simulation_model, tent_average,
-                                           tent_weights)
+from jmocap.data.synthetic.physics import (
+    floor_split,
+    lever_split,
+    simulation_model,
+    tent_average,
+    tent_weights,
+)
 from jmocap.physics.qp import friction_pyramid_rows
 
 FRAMES = 75

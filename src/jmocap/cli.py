@@ -106,7 +106,7 @@ def _data(p: argparse.ArgumentParser) -> None:
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     s.add_argument("--physics", action="store_true",
                    help="track each motion in MuJoCo simulation moved by contacts (gt_tau, gt_grf, "
-                        "gt_residual, per-foot force, CoP, free moment; force contact labels)")
+                        "gt_residual, per-foot force, CoP, free moment; contact labels by force and floor)")
     s.add_argument("--frames-per-clip", type=_frames_arg, default=(150, 300), metavar="N|MIN:MAX",
                    help="clip length in frames (default 150:300)")
     s.add_argument("--layout", default="body25", choices=["body25", "coco17", "h36m17"],

@@ -11,8 +11,8 @@ a penalised root residual is switched on only while the root pose error exceeds
 :attr:`PhysicsConfig.rescue_pos_m` / :attr:`PhysicsConfig.rescue_rot_deg` (recorded as
 ``residual``). Forces are sampled at the frames by the tent average that matches central
 differences of the frame positions (:func:`tent_average`); per-site forces come from a lever
-split of each contact force between its foot's heel and toe sites on the floor (:func:`floor_split`), per-foot
-force, centre of pressure and free moment from MuJoCo's contact points
+split of each contact force between its foot's heel and toe sites on the floor
+(:func:`floor_split`), per-foot force, centre of pressure and free moment from MuJoCo's contact points
 (:func:`foot_cop_free_moment`). :class:`PhysicsConfig` holds the settings; ``docs/data.md``
 describes the whole design.
 """
@@ -314,9 +314,10 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     Returns, sampled at the frames (forces by :func:`tent_average`): ``q``, ``qd`` (T, nq/nv) the
     simulated states; ``tau`` (T, nv) the applied generalised forces (root residual, hinge
     torques); ``residual`` (T, 6) = ``tau[:, :6]``; ``grf`` (T, 4, 3) the world-frame contact
-    forces on the feet, lever-split between each foot's heel and toe sites; ``foot_force``
-    (T, 2, 3), ``cop`` (T, 2, 3), ``free_moment`` (T, 2) per foot (left, right); ``contacts``
-    (T, 4) force contact labels; and ``stats``.
+    forces on the feet, split between each foot's heel and toe sites on the floor
+    (:func:`floor_split`); ``foot_force`` (T, 2, 3), ``cop`` (T, 2, 3), ``free_moment`` (T, 2) per
+    foot (left, right); ``contacts``
+    (T, 4) contact labels by force and floor (:func:`force_contact_labels`); and ``stats``.
     """
     T = len(q_ref)
     frame_dt = 1.0 / fps
