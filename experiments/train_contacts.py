@@ -3,7 +3,7 @@
     .venv/bin/python experiments/train_contacts.py [--ship]
 
 1. Generates the training archive if it is missing or short (resumable, deterministic):
-   ``jmocap data synth --out data/contacts_train --clips 200 --seed 7 --physics
+   ``jmocap data synth --out data/contacts_train --clips 1000 --seed 7 --physics
    --frames-per-clip 60:150`` -- clips tracked in MuJoCo simulation, whose ``gt_contacts`` are
    labelled by *force and floor* (docs/data.md), like the held-out archive
    ``data/heldout`` (seed 123, which this script refuses: never train or tune on it). Kinematic
@@ -318,7 +318,7 @@ def voted_f1(variables, clips) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="data/contacts_train", help="training archive folder")
-    ap.add_argument("--clips", type=int, default=200)
+    ap.add_argument("--clips", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=7, help="archive and training seed (never 123)")
     ap.add_argument("--frames-per-clip", default="60:150",
                     help="clip lengths (short clips: more subjects and cameras per generated frame)")
