@@ -165,8 +165,11 @@ def test_force_floor_contact_labels(clip):
     fz = clip.gt_grf[..., 2]
     z = _site_heights(clip)
     loaded = np.repeat(clip.gt_foot_force[..., 2] > thr, 2, axis=1)
-    want = (fz > thr) | (loaded & (z <= rule["site_floor_m"] + 1e-4))  # float32 storage of gt_q
-    np.testing.assert_array_equal(clip.gt_contacts, want.astype(np.float32))
+    want = (fz > thr) | (loaded & (z <= rule["site_floor_m"]))
+    # gt_q is stored in float32: heights within 0.1 mm of the threshold may fall either side
+    sure = np.abs(z - rule["site_floor_m"]) > 1e-4
+    np.testing.assert_array_equal(clip.gt_contacts[sure], want[sure].astype(np.float32))
+    assert sure.mean() > 0.95
     off = clip.gt_contacts == 0
     assert np.all(np.linalg.norm(clip.gt_grf[off], axis=-1) <= (1 + FRICTION_MU) * thr + 1e-3)
     assert clip.gt_contacts.any() and off.any()

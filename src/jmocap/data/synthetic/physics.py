@@ -316,8 +316,8 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     torques); ``residual`` (T, 6) = ``tau[:, :6]``; ``grf`` (T, 4, 3) the world-frame contact
     forces on the feet, split between each foot's heel and toe sites on the floor
     (:func:`floor_split`); ``foot_force`` (T, 2, 3), ``cop`` (T, 2, 3), ``free_moment`` (T, 2) per
-    foot (left, right); ``contacts``
-    (T, 4) contact labels by force and floor (:func:`force_contact_labels`); and ``stats``.
+    foot (left, right); ``contacts`` (T, 4) contact labels by force and floor
+    (:func:`force_contact_labels`); and ``stats``.
     """
     T = len(q_ref)
     frame_dt = 1.0 / fps
