@@ -692,6 +692,16 @@ def _check_archive_outcome(problems: Problems, case: F.ArchiveCase, spec: F.RunS
                              f"{p.relative_to(out)}: {oct(stat.S_IMODE(p.stat().st_mode))}, want {oct(want)}")
 
 
+def _default_signals() -> None:
+    """In the child before exec: SIGINT and SIGTERM unblocked, with their default dispositions, as
+    a shell starts a command. A blocked mask and an ignored disposition survive exec, and the
+    pytest worker's main thread can have SIGINT blocked by something an earlier test ran (seen
+    in the full suite: the run then never saw the signal and finished its 400 clips)."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def _signal_case(case: F.ArchiveCase, spec: F.RunSpec, sandbox: Sandbox, cache: str) -> Problems:
     """Start the CLI, send the signal once the first result is written, check the exit status,
     summary.json (``interrupted: true``), the finished results and that nothing is half-written."""
@@ -700,7 +710,8 @@ def _signal_case(case: F.ArchiveCase, spec: F.RunSpec, sandbox: Sandbox, cache: 
     before = snapshot(sandbox.root, exclude)
     cmd = [sys.executable, "-m", "jmocap.cli", *_argv(spec.input, spec.output, cache, spec.args)]
     t = time.perf_counter()
-    proc = subprocess.Popen(cmd, env=_env(sandbox.root), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, env=_env(sandbox.root), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_signals)
     problems = Problems(case.id)
     sent = False
     try:
