@@ -160,8 +160,9 @@ def floor_split(points: np.ndarray, forces: np.ndarray, heel: np.ndarray, toe: n
     down = np.array([heel[2] <= floor_m, toe[2] <= floor_m])
     if down.all():
         return lever_split(points, forces, heel, toe)
+    take = int(down[1]) if down.any() else int(toe[2] < heel[2])  # 0 heel, 1 toe
     out = np.zeros((2, 3))
-    out[int(toe[2] < heel[2]) if not down.any() else int(down[1])] = forces.sum(0)
+    out[take] = forces.sum(0)
     return out
 
 
