@@ -1,4 +1,4 @@
-"""Exports of a reconstruction: result files in, Biovision hierarchy (BVH) motion out.
+"""BVH export of a reconstruction: result files in, Biovision hierarchy (BVH) motion out.
 
 (Result files are read with :func:`jmocap.results.load_result`.)
 
