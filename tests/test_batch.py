@@ -503,7 +503,8 @@ def test_two_devices_shard_the_batch(xla_cache, first_run, params, input_folder,
     for n in GOOD:
         a, b = np.load(out / f"{n}.npz"), np.load(out1 / f"{n}.npz")
         np.testing.assert_allclose(a["q"], b["target_q"], rtol=0, atol=1e-4 * (np.abs(b["target_q"]).max() + 1))
-        assert np.all(a["tau"] == 0) and str(a["method"]) == "kinematic" and not bool(a["forces_estimated"])
+        assert "tau" not in a.files and "grf" not in a.files  # not estimated: absent, not zeros
+        assert str(a["method"]) == "kinematic" and not bool(a["forces_estimated"])
 
 
 def test_openpose_folder_as_the_whole_input(xla_cache, first_run, params, clips, tmp_path):

@@ -78,6 +78,33 @@ def test_defaults_are_named_and_give_the_nominal_character(tmp_path):
     assert r["forces_estimated"] is False and result_model(r) is character()
 
 
+def test_forces_not_estimated_are_absent_not_zero(tmp_path):
+    """A method that estimates no forces leaves tau and grf out of the file; an older file that
+    holds zeros there with forces_estimated False reads as absent too."""
+    clip = _clip()
+    T = clip.num_frames
+    res = {k: np.zeros((T, 4, 3) if k == "grf" else (T, 4), np.float32) for k in MOTION_FIELDS}
+    res.update(q=np.zeros((T, 48), np.float32), target_q=np.zeros((T, 48), np.float32),
+               qd=np.zeros((T, 47), np.float32), tau=np.zeros((T, 47), np.float32),
+               keypoints3d=np.zeros((T, 25, 3), np.float32))
+    arrays = result_arrays(clip, res, method="kinematic", height_m=1.75, mass_kg=character().total_mass,
+                           forces_estimated=False, identity={}, source="x")
+    assert "tau" not in arrays and "grf" not in arrays and "q" in arrays
+    write_result(tmp_path / "k.npz", arrays)
+    with np.load(tmp_path / "k.npz") as z:
+        assert "tau" not in z.files and "grf" not in z.files
+    r = load_result(tmp_path / "k.npz")
+    assert r["tau"] is None and r["grf"] is None and r["q"].shape == (T, 48)
+    old = dict(arrays, tau=np.zeros((T, 47), np.float32), grf=np.zeros((T, 4, 3), np.float32))
+    write_result(tmp_path / "old.npz", old)
+    r = load_result(tmp_path / "old.npz")
+    assert r["tau"] is None and r["grf"] is None
+    # with estimates, the same zeros are data
+    write_result(tmp_path / "est.npz", dict(old, forces_estimated=np.array(True)))
+    r = load_result(tmp_path / "est.npz")
+    assert r["grf"].shape == (T, 4, 3) and r["tau"].shape == (T, 47)
+
+
 # ---- result files ----------------------------------------------------------------------
 
 

@@ -10,7 +10,9 @@ name, source       str        ()            the clip's name and where it was rea
 method             str        ()            the registered method that made it
 q, qd              float32    (T, nq/nv)    motion (MuJoCo conventions)
 tau                float32    (T, nv)       generalised forces; residual root wrench in [:6]
+                                            (only when ``forces_estimated``)
 grf                float32    (T, 4, 3)     world-frame contact forces (N) per contact point
+                                            (only when ``forces_estimated``)
 contact_prob       float32    (T, 4)        contact probabilities
 target_q           float32    (T, nq)       the kinematic target the dynamics tracked
 keypoints3d        float32    (T, J, 3)     world-frame joints of ``q`` in ``layout``
@@ -38,8 +40,11 @@ model_sha256,                               the package version
 version
 =================  =========  ============  ===========================================
 
-``forces_estimated`` (bool) says whether ``tau`` and ``grf`` are estimates; the kinematic
-method writes zeros there and ``False`` here.
+``forces_estimated`` (bool) says whether the method estimates forces. Absent means absent: a
+method that estimates none (``kinematic``) writes ``False`` and leaves ``tau`` and ``grf`` out of
+the file (:func:`load_result` gives ``None`` for them), so no reader mistakes "not estimated" for
+"0 N". Files written before 2026-12-03 hold zeros there with ``forces_estimated = False``;
+:func:`load_result` reads those as absent too.
 """
 
 from __future__ import annotations
@@ -62,6 +67,8 @@ from jmocap.io import atomic_write, npz_bytes
 RESULT_FORMAT = "jmocap-result-1"
 #: per-frame fields written from a reconstruction, (T, ...) float32
 MOTION_FIELDS = ("q", "qd", "tau", "grf", "contact_prob", "target_q", "keypoints3d")
+#: the fields only a method that estimates forces writes (``forces_estimated``)
+FORCE_FIELDS = ("tau", "grf")
 
 # key -> trailing shape (None = any size); time series have a leading T
 _SERIES = {
@@ -143,7 +150,8 @@ def result_arrays(
         "name": np.array(clip.name),
         "source": np.array(source),
         "method": np.array(method),
-        **{k: np.asarray(result[k], np.float32) for k in MOTION_FIELDS},
+        **{k: np.asarray(result[k], np.float32) for k in MOTION_FIELDS
+           if forces_estimated or k not in FORCE_FIELDS},
         "keypoints2d": np.asarray(clip.keypoints, np.float32),
         **({"certified": np.asarray(result["certified"], bool)} if result.get("certified") is not None else {}),
         **({"diagnostics": np.array(json.dumps({k: float(v) for k, v in result["diagnostics"].items()}))}
@@ -176,7 +184,8 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
     """Read a reconstruction result ``.npz`` into a dict.
 
     Required: ``q`` (T, nq) and ``fps`` (> 0). Every other field of the format is present in the
-    dict, as ``None`` when the file lacks it (older or hand-made files). Shapes are checked (time
+    dict, as ``None`` when the file lacks it (older or hand-made files; ``tau`` and ``grf`` also
+    when ``forces_estimated`` is False: not estimated). Shapes are checked (time
     series must share T); numeric scalars become ``float``, 0-d strings ``str``, ``assumed`` a
     list; unknown extra keys are passed through as arrays. Raises
     :class:`jmocap.data.FormatError` (a ``ValueError``) naming the file and field.
@@ -259,6 +268,9 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
             if a.shape != () or a.dtype.kind != "b":
                 raise FormatError(f"{path}: field {key!r} must be a boolean, got shape {a.shape} ({a.dtype})")
             out[key] = bool(a)
+    if out["forces_estimated"] is False:  # absent means absent (older files hold zeros there)
+        for key in FORCE_FIELDS:
+            out[key] = None
     for key in ("assumed", "warnings"):
         if out[key] is not None:
             value = limits.parse_json(out[key], f"{path}: field {key!r}")

@@ -770,7 +770,7 @@ def render_result(
     ]
     if plots is not None:
         if r["grf"] is None:
-            raise ValueError(f"{result_path}: no field 'grf' to plot")
+            raise ValueError(f"{result_path}: no forces to plot (its method, {r['method']!r}, estimates none)")
         written.append(
             plot_forces(
                 Path(plots) / f"{result_path.stem}_forces.png", r["grf"], r["fps"],
