@@ -6,7 +6,8 @@
 # 2. checks that the wheel ships the character (MJCF), the default weights and the demo sample;
 # 3. installs it, NOT editable and with its core dependencies only, into a fresh venv;
 # 4. from a directory outside the source tree: `import jmocap; jmocap.load_model()`,
-#    `python -m jmocap --help`, and `jmocap demo` (results, BVH, metrics; the video is skipped
+#    `python -m jmocap --help`, and `jmocap demo` (results, BVH, OpenSim, GLB, the viewer page,
+#    metrics; the video is skipped
 #    with a message, as the core install has no viz extra), then checks the demo's files.
 #
 # Usage: .ci/wheel_smoke.sh   (PYTHON=python3.11 to choose the interpreter; KEEP=1 keeps the
@@ -98,8 +99,13 @@ out = Path(sys.argv[1])
 npz = sorted((out / "results").glob("*.npz"))
 bvh = sorted((out / "results").glob("*.bvh"))
 rows = json.loads((out / "metrics.json").read_text())
+glb = sorted((out / "export").glob("*.glb"))
+osim = sorted((out / "export").glob("*.osim"))
 if len(npz) < 3 or len(bvh) < 3 or set(rows) != {p.stem for p in npz} or not (out / "metrics.md").is_file():
     sys.exit(f"wheel-smoke: FAILED: demo outputs incomplete: {npz}, {bvh}, metrics for {sorted(rows)}")
-print(f"wheel-smoke: demo wrote {len(npz)} results, {len(bvh)} BVH files, metrics for {sorted(rows)}")
+if len(glb) < 3 or len(osim) < 3 or not (out / "viewer.html").is_file():
+    sys.exit(f"wheel-smoke: FAILED: demo exports incomplete: {glb}, {osim}, viewer.html")
+print(f"wheel-smoke: demo wrote {len(npz)} results, {len(bvh)} BVH files, {len(glb)} GLB, {len(osim)} OpenSim "
+      f"models, viewer.html, metrics for {sorted(rows)}")
 EOF
 step "OK"

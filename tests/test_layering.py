@@ -31,6 +31,7 @@ FORBIDDEN = {
     "batch": ("evaluate", "train", "cli", "demo"),
     "evaluate": ("batch", "train", "cli", "demo"),
     "train": ("batch", "evaluate", "cli", "demo"),
+    "export": ("methods", "pipeline", "batch", "evaluate", "metrics", "train", "cli", "demo", "weights", "nets"),
 }
 
 

@@ -11,7 +11,8 @@ is one decorated function::
 
 Commands: ``data synth`` (synthetic clip archives), ``data info`` (summarise an archive),
 ``reconstruct`` (batch reconstruction of an archive), ``eval`` (the metrics table of methods
-over an archive with ground truth), ``render`` (video and force plots of a result) and
+over an archive with ground truth), ``render`` (video and force plots of a result), ``export``
+(OpenSim, glTF and BVH files of results), ``view`` (a self-contained HTML viewer page) and
 ``demo`` (all of it on the shipped sample).
 """
 
@@ -265,6 +266,101 @@ def cmd_render(args) -> int:
         print(f"jmocap render: {e}", file=sys.stderr)
         return 1
     print("jmocap render: wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+# =========================================================================================
+# jmocap export / jmocap view
+# =========================================================================================
+
+def _result_paths(path: str):
+    """Result files of RESULTS (one .npz, or the .npz files of a results folder), sorted."""
+    from pathlib import Path
+
+    p = Path(path)
+    if p.is_file():
+        return [p]
+    if p.is_dir():
+        return sorted(f for f in p.glob("*.npz") if f.is_file())
+    raise FileNotFoundError(f"no result file or folder at {p}")
+
+
+@command("export", "export results to OpenSim (.osim/.mot/.xml/.trc), glTF (.glb) and BVH")
+def _export(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Export reconstruction results (a result .npz or a results folder) to the files other tools "
+        "open: OpenSim (the character as a .osim model, joint coordinates and per-foot ground reaction "
+        "forces as .mot with their ExternalLoads .xml, keypoints as .trc markers), an animated glTF "
+        "binary (.glb: Blender, three.js) and BVH (docs/formats.md). Without a format flag, all of them."
+    )
+    p.add_argument("results", help="result .npz, or a folder of them (jmocap reconstruct's OUTPUT)")
+    p.add_argument("out", help="output folder (created)")
+    from jmocap.export import EXPORT_FORMATS
+
+    for f in EXPORT_FORMATS:
+        p.add_argument(f"--{f}", action="store_true", help=f"write {f} files")
+    p.add_argument("--no-forces", action="store_true", help="glb: no force arrows or contact markers")
+    p.set_defaults(func=cmd_export)
+
+
+def cmd_export(args) -> int:
+    from jmocap.data.clip import FormatError
+    from jmocap.export import EXPORT_FORMATS, export_result
+    from jmocap.results import load_result
+
+    formats = [f for f in EXPORT_FORMATS if getattr(args, f)] or list(EXPORT_FORMATS)
+    try:
+        files = _result_paths(args.results)
+    except FileNotFoundError as e:
+        print(f"jmocap export: {e}", file=sys.stderr)
+        return 1
+    if not files:
+        print(f"jmocap export: no .npz result files in {args.results}", file=sys.stderr)
+        return 1
+    failed = 0
+    n = 0
+    for f in files:
+        try:
+            r = load_result(f)
+            written = export_result(r, r.get("name") or f.stem, args.out, formats, forces=not args.no_forces)
+        except (FormatError, ValueError, OSError) as e:
+            failed += 1
+            print(f"jmocap export: {f}: {e}", file=sys.stderr)
+            continue
+        n += len(written)
+    print(f"jmocap export: {len(files) - failed} of {len(files)} results, {n} files in {args.out} "
+          f"({', '.join(formats)})")
+    return 1 if failed else 0
+
+
+@command("view", "write one self-contained HTML page that plays results (3D, forces, plots)")
+def _view(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Write a single HTML file (opens offline from disk, no server) that plays a result or a "
+        "results folder: the character in 3D with the floor, ground reaction force arrows and "
+        "contacts, a time slider, the clip list with its numbers, and force/torque plots."
+    )
+    p.add_argument("results", help="result .npz, or a folder of them (jmocap reconstruct's OUTPUT)")
+    p.add_argument("-o", "--out", help="the page (default: RESULTS/viewer.html for a folder, RESULT.html for a file)")
+    p.add_argument("--max-clips", type=int, default=100, help="clips on the page (default 100; ~200 kB each)")
+    p.set_defaults(func=cmd_view)
+
+
+def cmd_view(args) -> int:
+    from pathlib import Path
+
+    from jmocap.export.viewer import write_viewer
+
+    src = Path(args.results)
+    out = args.out or (src / "viewer.html" if src.is_dir() else src.with_suffix(".html"))
+    try:
+        page, skipped = write_viewer(src, out, max_clips=args.max_clips)
+    except (ValueError, FileNotFoundError, OSError) as e:
+        print(f"jmocap view: {e}", file=sys.stderr)
+        return 1
+    for s in skipped:
+        print(f"jmocap view: skipped {s}", file=sys.stderr)
+    print(f"jmocap view: wrote {page}")
     return 0
 
 

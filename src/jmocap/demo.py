@@ -24,6 +24,7 @@ reconstruction and redoes the rest.
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from importlib import resources
 from pathlib import Path
@@ -63,6 +64,11 @@ def run_demo(
     out = Path(out)
     assets = demo_assets()
     params, config = load_run_params(params_path, method=DEFAULT_METHOD)
+    # the demo's outputs are derived: a previous demo's (another version, method or config) are
+    # replaced, not resumed (resuming refuses a folder written with other settings)
+    for sub in ("results", "export"):
+        if (out / sub).is_dir():
+            shutil.rmtree(out / sub)
     log(f"jmocap demo: reconstructing {assets / 'input'} -> {out / 'results'}")
     bar = (lambda n: Progress(n, "reconstruct")) if progress else None
     summary = reconstruct_archive(
@@ -91,6 +97,14 @@ def run_demo(
     (out / "metrics.md").write_text(table)
     (out / "metrics.json").write_text(json.dumps(rows, indent=1))
     files = [out / "metrics.md", out / "metrics.json"]
+
+    # what other tools open: OpenSim files and an animated glTF per clip, one viewer page
+    from jmocap.export import export_result
+    from jmocap.export.viewer import write_viewer
+
+    for name, (_, r) in results.items():
+        files += export_result(r, name, out / "export", ("opensim", "glb"))
+    files.append(write_viewer(out / "results", out / "viewer.html", title="jmocap demo")[0])
 
     if render:
         from jmocap.viz import VIZ_INSTALL, missing_viz_packages
