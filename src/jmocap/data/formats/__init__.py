@@ -54,14 +54,19 @@ from jmocap.data.clip import Clip, ClipFormatError, FormatError, load_clip
 from jmocap.data.formats.amass import SMPL_JOINT_NAMES, Joints3D, read_amass_joints
 from jmocap.data.formats.arrays import read_keypoint_array
 from jmocap.data.formats.camera_file import (
+    SIDECAR_KEYS,
+    Y_UP_TO_Z_UP,
+    distort_normalized,
     find_sidecar,
     read_camera_json,
+    rodrigues,
     sidecar_path,
+    undistort_points,
     write_camera_json,
 )
 from jmocap.data.formats.coco import read_coco_json, write_coco_results
 from jmocap.data.formats.common import _READ_ERRORS, _ferr, _load_json, clean_keypoints, safe_name
-from jmocap.data.formats.keypoints import DEFAULT_FPS, Keypoints2D
+from jmocap.data.formats.keypoints import DEFAULT_FPS, Keypoints2D, undistort_keypoints
 from jmocap.data.formats.mmpose import read_mmpose_json, write_mmpose_json
 from jmocap.data.formats.openpose import (
     OPENPOSE_FILE_RE,
@@ -203,6 +208,12 @@ def read_clip(
                     changes[key] = v
             if name is not None:
                 changes["name"] = name
+            if side.get("distortion") is not None:  # lens distortion: to the ideal pinhole's pixels
+                from jmocap.data.formats.keypoints import undistort_keypoints
+
+                intr = changes.get("intrinsics", clip.intrinsics)
+                changes["keypoints"] = undistort_keypoints(clip.keypoints, intr, side["distortion"])
+                changes["meta"] = {**clip.meta, "undistorted": [float(v) for v in side["distortion"]]}
             return clip.replace(**changes) if changes else clip
     kp = read_keypoints(path, **reader_kwargs)
     return kp.to_clip(
@@ -216,23 +227,23 @@ def read_clip(
 
 
 __all__ = [
+    "Candidate",
+    "clean_keypoints",
     "CLIP_FORMAT",
+    "ClipFormatError",
     "DEFAULT_FPS",
+    "distort_normalized",
+    "find_sidecar",
+    "FormatError",
     "H36M_CAMERAS",
     "H36M_FPS",
-    "MAX_PICKLE_DEPTH",
-    "SMPL_JOINT_NAMES",
-    "Candidate",
-    "ClipFormatError",
-    "FormatError",
+    "iter_videopose3d",
     "Joints3D",
     "Keypoints2D",
+    "load_npz_pickled",
+    "MAX_PICKLE_DEPTH",
     "OPENPOSE_FILE_RE",
     "OPENPOSE_VERSION",
-    "RestrictedUnpickler",
-    "clean_keypoints",
-    "iter_videopose3d",
-    "load_npz_pickled",
     "plain_data",
     "read_amass_joints",
     "read_camera_json",
@@ -243,13 +254,19 @@ __all__ = [
     "read_mmpose_json",
     "read_openpose_folder",
     "read_videopose3d",
+    "RestrictedUnpickler",
+    "rodrigues",
     "safe_name",
     "select_person",
-    "find_sidecar",
+    "SIDECAR_KEYS",
     "sidecar_path",
+    "SMPL_JOINT_NAMES",
+    "undistort_keypoints",
+    "undistort_points",
     "write_camera_json",
     "write_coco_results",
     "write_mmpose_json",
     "write_openpose_folder",
     "write_videopose3d",
+    "Y_UP_TO_Z_UP",
 ]

@@ -1,14 +1,33 @@
 """The camera sidecar: ``<clip>.camera.json`` next to a keypoint file or folder.
 
-A JSON object ``{"fx", "fy", "cx", "cy", "width", "height"}`` (pixels) with optional
-``"extrinsics"`` (4x4 nested list, world->camera, OpenCV axes) and ``"fps"``. It supplies what
-most detector formats do not store (:meth:`~jmocap.data.formats.keypoints.Keypoints2D.to_clip`,
+A JSON object with the image size ``"width"``, ``"height"`` (pixels) and the intrinsics, in
+one of the common conventions (docs/formats.md, "Camera sidecar"), optionally ``"fps"`` and the
+subject's ``"height_m"``, ``"mass_kg"``. It supplies what most detector formats do not store
+(:meth:`~jmocap.data.formats.keypoints.Keypoints2D.to_clip`,
 :func:`~jmocap.data.formats.read_clip`).
+
+* intrinsics: ``"fx", "fy", "cx", "cy"``, or ``"K"`` (3x3, OpenCV: ``[[fx, 0, cx], [0, fy,
+  cy], [0, 0, 1]]``); lens distortion ``"dist"`` (OpenCV's ``k1 k2 p1 p2 [k3 [k4 k5 k6]]``):
+  the keypoints are undistorted through it when the clip is read (:func:`undistort_points`);
+* extrinsics, at most one of: ``"extrinsics"`` (4x4 world -> camera); ``"R"`` (3x3) or
+  ``"rvec"`` (Rodrigues, 3) with ``"t"`` / ``"tvec"`` (OpenCV's world -> camera:
+  ``x_cam = R X + t``); ``"R_world_to_cam"`` with ``"t_world_to_cam"``; ``"cam_to_world"``
+  (4x4 camera pose); ``"camera_position"`` (3) with ``"camera_rotation"`` (3x3, camera ->
+  world: its columns are the camera's x, y, z axes in the world). Camera axes are OpenCV's
+  (x right, y down, z forward);
+* the world: ``"world_up"`` ``"z"`` (jmocap's, the default) or ``"y"`` (a y-up world, as
+  OpenSim, glTF, Unity: turned into jmocap's by ``(x, y, z) -> (x, -z, y)``), and
+  ``"floor_height"`` (the floor's coordinate along the up axis, default 0).
+
+Any other key, two forms of the same thing (``fx`` and ``K``, ``extrinsics`` and ``R``), or half
+of a pair (``R`` without ``t``) is a :class:`FormatError` naming the file and the key: nothing
+in a camera file is silently ignored.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -27,9 +46,66 @@ from jmocap.data.formats.common import (
 
 # keys a sidecar does not have, though a clip does: refused rather than silently ignored
 _NOT_SIDECAR_KEYS = {
-    "intrinsics": "the sidecar gives the intrinsics as 'fx', 'fy', 'cx', 'cy'",
+    "intrinsics": "the sidecar gives the intrinsics as 'fx', 'fy', 'cx', 'cy' (or 'K')",
     "image_size": "the sidecar gives the image size as 'width', 'height'",
 }
+#: every key a sidecar may have (anything else is an error)
+SIDECAR_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "K", "dist", "fps", "height_m", "mass_kg",
+                "extrinsics", "R", "rvec", "t", "tvec", "R_world_to_cam", "t_world_to_cam", "cam_to_world",
+                "camera_position", "camera_rotation", "world_up", "floor_height")
+#: the forms of the extrinsics: (keys that must all be present, the form's name)
+_EXTRINSIC_FORMS = (
+    (("extrinsics",), "extrinsics"),
+    (("R", "t"), "R/t"),
+    (("R", "tvec"), "R/t"),
+    (("rvec", "t"), "rvec/t"),
+    (("rvec", "tvec"), "rvec/t"),
+    (("R_world_to_cam", "t_world_to_cam"), "R_world_to_cam"),
+    (("cam_to_world",), "cam_to_world"),
+    (("camera_position", "camera_rotation"), "camera pose"),
+)
+_EXTRINSIC_KEYS = ("extrinsics", "R", "rvec", "t", "tvec", "R_world_to_cam", "t_world_to_cam", "cam_to_world",
+                   "camera_position", "camera_rotation")
+#: jmocap's world from a y-up world: (x, y, z) -> (x, -z, y), a rotation
+Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def rodrigues(rvec: np.ndarray) -> np.ndarray:
+    """The rotation matrix (3, 3) of a Rodrigues vector (axis times angle, radians)."""
+    rvec = np.asarray(rvec, np.float64)
+    theta = float(np.linalg.norm(rvec))
+    if theta < 1e-12:
+        return np.eye(3)
+    k = rvec / theta
+    Kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(theta) * Kx + (1.0 - math.cos(theta)) * Kx @ Kx
+
+
+def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """OpenCV's lens model on normalised image points (..., 2): radial ``k1 k2 k3`` (rational
+    ``k4 k5 k6``) and tangential ``p1 p2`` (``dist`` with 4, 5 or 8 coefficients)."""
+    d = np.zeros(8)
+    d[: len(dist)] = dist
+    k1, k2, p1, p2, k3, k4, k5, k6 = d
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    return np.stack([x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+                     y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y], -1)
+
+
+def undistort_points(uv: np.ndarray, intrinsics, dist, iterations: int = 30) -> np.ndarray:
+    """Pixels (..., 2) seen through a lens with OpenCV distortion ``dist`` -> the pixels an ideal
+    pinhole camera with the same ``intrinsics`` (fx, fy, cx, cy) sees: the inverse of
+    :func:`distort_normalized` by fixed-point iteration (as OpenCV's ``undistortPoints`` with
+    ``P = K``). Non-finite points stay non-finite."""
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    uv = np.asarray(uv, np.float64)
+    xd = np.stack([(uv[..., 0] - cx) / fx, (uv[..., 1] - cy) / fy], -1)
+    x = xd.copy()
+    for _ in range(iterations):
+        x = x + (xd - distort_normalized(x, dist))
+    return np.stack([x[..., 0] * fx + cx, x[..., 1] * fy + cy], -1)
 
 
 def sidecar_path(path: str | os.PathLike) -> Path:
@@ -52,23 +128,87 @@ def find_sidecar(path: str | os.PathLike) -> Path | None:
     return None
 
 
+def _matrix(data, key, shape, path) -> np.ndarray:
+    a = _nested_numbers(data[key], len(shape), path, key) if len(shape) > 1 else np.asarray(
+        [_number(v, path, key) for v in _list(data[key], path, key)], np.float64)
+    if a.shape != shape or not np.isfinite(a).all():
+        raise _ferr(path, f"must be {'x'.join(map(str, shape))} finite numbers, got shape {a.shape}", field=key)
+    return a
+
+
+def _list(v, path, key):
+    if not isinstance(v, list):
+        raise _ferr(path, f"must be a JSON array, got {_type_name(v)}", field=key)
+    return v
+
+
+def _rotation(R: np.ndarray, path, key) -> np.ndarray:
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        raise _ferr(path, "must be a rotation matrix (orthonormal, determinant +1)", field=key)
+    return R
+
+
+def _world_to_camera(data, path) -> tuple[np.ndarray | None, str | None]:
+    """The 4x4 world -> camera transform of whichever extrinsics form ``data`` has."""
+    present = [k for k in _EXTRINSIC_KEYS if k in data]
+    if not present:
+        return None, None
+    forms = [(keys, name) for keys, name in _EXTRINSIC_FORMS if all(k in data for k in keys)]
+    covered = {k for keys, _ in forms for k in keys}
+    for k in present:
+        if k not in covered:
+            partner = {"R": "'t' (or 'tvec')", "rvec": "'t' (or 'tvec')", "t": "'R' or 'rvec'", "tvec": "'R' or 'rvec'",
+                       "R_world_to_cam": "'t_world_to_cam'", "t_world_to_cam": "'R_world_to_cam'",
+                       "camera_position": "'camera_rotation'", "camera_rotation": "'camera_position'"}.get(k, "")
+            raise _ferr(path, f"needs {partner} with it", field=k)
+    names = {name for _, name in forms}
+    if len(names) > 1 or len(forms) > 1 and len({frozenset(keys) for keys, _ in forms}) > 1:
+        keys = sorted({k for keys, _ in forms for k in keys})
+        raise _ferr(path, f"gives the extrinsics more than one way ({', '.join(keys)}): give one", field=keys[0])
+    keys, name = forms[0]
+    E = np.eye(4)
+    if name == "extrinsics":
+        E = _nested_numbers(data["extrinsics"], 2, path, "extrinsics")
+        problem = _extrinsics_problem(E)
+        if problem is not None:
+            raise _ferr(path, problem, field="extrinsics")
+        return E, name
+    if name == "cam_to_world":
+        P = _nested_numbers(data["cam_to_world"], 2, path, "cam_to_world")
+        problem = _extrinsics_problem(P)
+        if problem is not None:
+            raise _ferr(path, problem, field="cam_to_world")
+        E[:3, :3] = P[:3, :3].T
+        E[:3, 3] = -P[:3, :3].T @ P[:3, 3]
+        return E, name
+    if name == "camera pose":
+        Rc = _rotation(_matrix(data, "camera_rotation", (3, 3), path), path, "camera_rotation")
+        c = _matrix(data, "camera_position", (3,), path)
+        E[:3, :3] = Rc.T
+        E[:3, 3] = -Rc.T @ c
+        return E, name
+    rkey, tkey = keys
+    R = rodrigues(_matrix(data, "rvec", (3,), path)) if rkey == "rvec" else _rotation(
+        _matrix(data, rkey, (3, 3), path), path, rkey)
+    E[:3, :3] = R
+    E[:3, 3] = _matrix(data, tkey, (3,), path)
+    return E, name
+
+
 def read_camera_json(path: str | os.PathLike) -> dict[str, Any]:
-    """Read a camera sidecar: ``{"fx", "fy", "cx", "cy", "width", "height"}`` plus optional
-    ``"extrinsics"`` (4x4 nested list, world->camera, OpenCV axes) and ``"fps"``.
+    """Read a camera sidecar in any of the conventions of the module docstring.
 
-    The subject's ``"height_m"`` and ``"mass_kg"`` may be given too (numbers > 0; their
-    plausible ranges are checked with the clip, :mod:`jmocap.data.validate`).
-
-    Returns ``{"intrinsics": (4,), "image_size": (w, h), "extrinsics": (4, 4) | None,
-    "fps": float | None, "height_m": float | None, "mass_kg": float | None}``.
+    Returns ``{"intrinsics": (4,), "image_size": (w, h), "extrinsics": (4, 4) world -> camera
+    in jmocap's z-up world | None, "distortion": (k,) | None, "fps": float | None, "height_m":
+    float | None, "mass_kg": float | None, "convention": str}`` (``convention`` names the
+    extrinsics form and world read, for the record).
 
     Checked (else a :class:`FormatError` naming the file and the field): the file is a JSON
-    object; ``fx``, ``fy``, ``cx``, ``cy`` are finite JSON numbers with ``fx``, ``fy`` > 0;
-    ``width``, ``height`` positive integers (at most :data:`~jmocap.data.clip.MAX_IMAGE_SIDE`);
-    ``fps`` a finite number > 0; ``extrinsics`` a 4x4 list of numbers that is a rigid transform
-    ``[R t; 0 0 0 1]`` with R a rotation. Numbers must be JSON numbers: ``"30"`` or ``true``
-    are refused, not converted. The clip's key names ``intrinsics`` and ``image_size`` are
-    refused (a sidecar that has them means something the reader would otherwise ignore).
+    object of known keys only; ``fx``, ``fy``, ``cx``, ``cy`` (or ``K``) finite JSON numbers
+    with ``fx``, ``fy`` > 0; ``width``, ``height`` positive integers (at most
+    :data:`~jmocap.data.clip.MAX_IMAGE_SIDE`); ``fps`` a finite number > 0; rotations are
+    rotations, transforms rigid; ``dist`` 4, 5 or 8 numbers. Numbers must be JSON numbers:
+    ``"30"`` or ``true`` are refused, not converted.
     """
     path = Path(path)
     data = _load_json(path)
@@ -77,23 +217,61 @@ def read_camera_json(path: str | os.PathLike) -> dict[str, Any]:
     for key, hint in _NOT_SIDECAR_KEYS.items():
         if key in data:
             raise _ferr(path, f"is not a camera sidecar key: {hint}", field=key)
-    for key in ("fx", "fy", "cx", "cy", "width", "height"):
+    for key in data:
+        if key not in SIDECAR_KEYS:
+            raise _ferr(path, "unknown key (a camera file's keys are: " + ", ".join(SIDECAR_KEYS)
+                        + "; docs/formats.md)", field=key)
+    for key in ("width", "height"):
         if key not in data:
             raise _ferr(path, "missing", field=key)
     out: dict[str, Any] = {}
-    intr = [_number(data[k], path, k, positive=k in ("fx", "fy")) for k in ("fx", "fy", "cx", "cy")]
-    out["intrinsics"] = np.asarray(intr, np.float64)
+    if "K" in data:
+        for k in ("fx", "fy", "cx", "cy"):
+            if k in data:
+                raise _ferr(path, "the intrinsics are given twice ('K' and 'fx'/'fy'/'cx'/'cy'): give one", field=k)
+        K = _matrix(data, "K", (3, 3), path)
+        if abs(K[0, 1]) > 1e-9 or not np.allclose(K[1, 0], 0) or not np.allclose(K[2], [0, 0, 1]):
+            raise _ferr(path, "must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew)", field="K")
+        if not (K[0, 0] > 0 and K[1, 1] > 0):
+            raise _ferr(path, "fx and fy (K[0][0], K[1][1]) must be positive", field="K")
+        out["intrinsics"] = np.asarray([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float64)
+    else:
+        for key in ("fx", "fy", "cx", "cy"):
+            if key not in data:
+                raise _ferr(path, "missing (or give 'K')", field=key)
+        intr = [_number(data[k], path, k, positive=k in ("fx", "fy")) for k in ("fx", "fy", "cx", "cy")]
+        out["intrinsics"] = np.asarray(intr, np.float64)
     out["image_size"] = tuple(
         _number(data[k], path, k, integer=True, positive=True, maximum=MAX_IMAGE_SIDE)
         for k in ("width", "height")
     )
-    E = data.get("extrinsics")
+    out["distortion"] = None
+    if "dist" in data:
+        d = np.asarray([_number(v, path, "dist") for v in _list(data["dist"], path, "dist")], np.float64)
+        if len(d) not in (4, 5, 8):
+            raise _ferr(path, f"must have 4, 5 or 8 coefficients (OpenCV: k1 k2 p1 p2 [k3 [k4 k5 k6]]), got {len(d)}",
+                        field="dist")
+        out["distortion"] = d if np.any(d != 0) else None
+    E, form = _world_to_camera(data, path)
+    up = data.get("world_up", "z")
+    if up not in ("z", "y"):
+        raise _ferr(path, f"must be \"z\" or \"y\", got {up!r}", field="world_up")
+    floor = _number(data["floor_height"], path, "floor_height") if "floor_height" in data else 0.0
     if E is not None:
-        E = _nested_numbers(E, 2, path, "extrinsics")
+        # world points of the file's world X_f = A^T (X_jmocap + floor up): x_cam = E [A^T (X + f e_z)]
+        A = Y_UP_TO_Z_UP if up == "y" else np.eye(3)
+        W = np.eye(4)
+        W[:3, :3] = A.T
+        W[:3, 3] = A.T @ np.array([0.0, 0.0, floor])
+        E = E @ W
         problem = _extrinsics_problem(E)
-        if problem is not None:
+        if problem is not None:  # pragma: no cover - a product of rigid transforms is rigid
             raise _ferr(path, problem, field="extrinsics")
+    elif up != "z" or floor != 0.0:
+        raise _ferr(path, "given without extrinsics (it changes only where the camera is)",
+                    field="world_up" if up != "z" else "floor_height")
     out["extrinsics"] = E
+    out["convention"] = f"{form or 'no extrinsics'}, {up}-up world" + (f", floor at {floor}" if floor else "")
     fps = data.get("fps")
     if fps is not None:
         fps = _number(fps, path, "fps", positive=True)
@@ -128,4 +306,14 @@ def write_camera_json(path: str | os.PathLike, clip: Clip) -> Path:
     return path
 
 
-__all__ = ["find_sidecar", "read_camera_json", "sidecar_path", "write_camera_json"]
+__all__ = [
+    "SIDECAR_KEYS",
+    "Y_UP_TO_Z_UP",
+    "distort_normalized",
+    "find_sidecar",
+    "read_camera_json",
+    "rodrigues",
+    "sidecar_path",
+    "undistort_points",
+    "write_camera_json",
+]

@@ -18,7 +18,7 @@ import numpy as np
 
 from jmocap.camera import default_intrinsics
 from jmocap.data.clip import MAX_IMAGE_SIDE, Clip, FormatError
-from jmocap.data.formats.camera_file import read_camera_json, sidecar_path
+from jmocap.data.formats.camera_file import read_camera_json, sidecar_path, undistort_points
 from jmocap.data.formats.common import _number, _type_name
 
 DEFAULT_FPS = 30.0
@@ -117,12 +117,18 @@ class Keypoints2D:
         if assumed:
             meta["assumed"] = assumed
         clip_name = name if name is not None else self.name
+        keypoints = self.keypoints
+        if side.get("distortion") is not None:  # lens distortion: to the ideal pinhole's pixels
+            keypoints = undistort_keypoints(keypoints, intr, side["distortion"])
+            meta["undistorted"] = [float(v) for v in side["distortion"]]
+        if side.get("convention"):
+            meta["camera_convention"] = side["convention"]
         try:
             return Clip(
                 name=clip_name,
                 layout=self.layout,
                 fps=f,
-                keypoints=self.keypoints,
+                keypoints=keypoints,
                 intrinsics=intr,
                 image_size=np.asarray(size),
                 extrinsics=extr,
@@ -135,4 +141,14 @@ class Keypoints2D:
             raise type(e)(f"{where}: {msg.removeprefix(prefix)}") from None
 
 
-__all__ = ["DEFAULT_FPS", "Keypoints2D"]
+def undistort_keypoints(keypoints: np.ndarray, intrinsics, distortion) -> np.ndarray:
+    """Keypoints (T, J, 3) seen through a lens with OpenCV distortion -> the ideal pinhole
+    camera's pixels (:func:`~jmocap.data.formats.camera_file.undistort_points`); confidences and
+    missing points (confidence 0 or NaN) unchanged."""
+    kp = np.array(keypoints, dtype=np.float64, copy=True)
+    ok = np.isfinite(kp[..., :2]).all(-1) & (kp[..., 2] > 0)
+    kp[ok, :2] = undistort_points(kp[ok, :2], intrinsics, distortion)
+    return kp.astype(np.asarray(keypoints).dtype)
+
+
+__all__ = ["DEFAULT_FPS", "Keypoints2D", "undistort_keypoints"]
