@@ -93,7 +93,17 @@ def make_inputs(batch: int, frames: int):
     return jax.tree.map(lambda *xs: np.stack(xs), *[one[i] for i in idx])
 
 
-def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int = 1) -> dict:
+def parse_set(items, cfg):
+    """``name=value`` config changes (the value parsed as the field's current type)."""
+    out = {}
+    for item in items or ():
+        k, v = item.split("=", 1)
+        cur = getattr(cfg, k)
+        out[k] = v if isinstance(cur, str) else type(cur)(float(v)) if not isinstance(cur, bool) else v == "True"
+    return out
+
+
+def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int = 1, changes=()) -> dict:
     """Measure one configuration in this process; returns a JSON-able dict.
 
     ``devices`` > 1 shards the batch of clips over that many host CPU devices (the process must
@@ -117,6 +127,7 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
         reconstruct = get_method("physcap").reconstruct
         params, cfg, source = load_params(model, PhysCapConfig())
         cfg = cfg.replace(physics_backend=backend)
+    cfg = cfg.replace(**parse_set(changes, cfg))
     inputs = make_inputs(batch, frames)
     if devices > 1:
         if len(jax.devices()) < devices or batch % devices:
@@ -147,7 +158,7 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
     return dict(batch=batch, frames=frames, backend=backend, params=source, compile_s=compile_s,
                 call_s=t, calls=len(times), fps=batch * frames / t, cores=cores,
                 fps_per_core=batch * frames / t / max(cores, 1e-9), rss_setup_mb=rss_setup,
-                rss_peak_mb=rss_mb(), finite=finite, devices=devices)
+                rss_peak_mb=rss_mb(), finite=finite, devices=devices, changes=list(changes))
 
 
 def in_subprocess(batch, frames, backend, min_time, timeout, devices: int = 1) -> dict:
@@ -277,12 +288,14 @@ def main(argv=None):
     ap.add_argument("--large-frames", type=int, default=30,
                     help="frames per clip at batch 512 (extrapolated per frame; 300 takes too long)")
     ap.add_argument("--devices", type=int, default=1, help=argparse.SUPPRESS)  # with --one
+    ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="with --one: config changes of the method (e.g. fit_iterations=5)")
     ap.add_argument("--pip", action="store_true",
                     help="also the pip method and its variant pip_tpnet (backend columns 'pip', 'pip_tpnet')")
     args = ap.parse_args(argv)
     if args.one:
         b, f, backend = args.one
-        print(json.dumps(run_one(int(b), int(f), backend, args.min_time, args.devices)), flush=True)
+        print(json.dumps(run_one(int(b), int(f), backend, args.min_time, args.devices, args.set)), flush=True)
         return
 
     sys.path.insert(0, str(HERE))
