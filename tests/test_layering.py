@@ -31,6 +31,7 @@ FORBIDDEN = {
     "batch": ("evaluate", "train", "cli", "demo"),
     "evaluate": ("batch", "train", "cli", "demo"),
     "train": ("batch", "evaluate", "cli", "demo"),
+    "score": ("methods", "pipeline", "batch", "evaluate", "train", "cli", "demo", "weights", "nets"),
     "export": ("methods", "pipeline", "batch", "evaluate", "metrics", "train", "cli", "demo", "weights", "nets"),
 }
 

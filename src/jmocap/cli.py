@@ -12,8 +12,9 @@ is one decorated function::
 Commands: ``data synth`` (synthetic clip archives), ``data info`` (summarise an archive),
 ``reconstruct`` (batch reconstruction of an archive), ``eval`` (the metrics table of methods
 over an archive with ground truth), ``render`` (video and force plots of a result), ``export``
-(OpenSim, glTF and BVH files of results), ``view`` (a self-contained HTML viewer page) and
-``demo`` (all of it on the shipped sample).
+(OpenSim, glTF and BVH files of results), ``view`` (a self-contained HTML viewer page),
+``score`` (results against 3D ground truth with any subset of joints) and ``demo`` (all of it
+on the shipped sample).
 """
 
 from __future__ import annotations
@@ -331,6 +332,39 @@ def cmd_export(args) -> int:
     print(f"jmocap export: {len(files) - failed} of {len(files)} results, {n} files in {args.out} "
           f"({', '.join(formats)})")
     return 1 if failed else 0
+
+
+@command("score", "score results made earlier against 3D ground truth with any subset of named joints")
+def _score(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Score result files against 3D ground truth that may have only some joints (a joint file: "
+        "joint_names, joints3d, fps; or a jmocap clip with gt_keypoints3d; docs/formats.md): MPJPE, "
+        "PA-MPJPE, absolute MPJPE, root error, smoothness and acceleration errors on the joints the "
+        "ground truth has, and the result's jitter and foot metrics. Writes OUT/scores.md and .json."
+    )
+    p.add_argument("results", help="result .npz, or a folder of them")
+    p.add_argument("gt", help="a ground-truth file, or a folder with <clip name>.npz / .json per clip")
+    p.add_argument("--out", default="out/score", help="output folder (default out/score)")
+    p.set_defaults(func=cmd_score)
+
+
+def cmd_score(args) -> int:
+    from jmocap.score import score_results, scores_table, write_scores
+
+    try:
+        rows, problems = score_results(args.results, args.gt)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"jmocap score: {e}", file=sys.stderr)
+        return 1
+    for line in problems:
+        print(f"jmocap score: {line}", file=sys.stderr)
+    if not rows:
+        print("jmocap score: nothing scored", file=sys.stderr)
+        return 1
+    files = write_scores(rows, args.out)
+    print(scores_table(rows))
+    print(f"jmocap score: {len(rows)} clips scored, {len(problems)} not -> " + ", ".join(str(f) for f in files))
+    return 1 if problems else 0
 
 
 @command("view", "write one self-contained HTML page that plays results (3D, forces, plots)")

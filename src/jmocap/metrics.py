@@ -92,6 +92,18 @@ def _frame_mask(mask, lead: tuple[int, ...]) -> Array:
     return m.astype(bool)
 
 
+def _joint_mask(mask, shape: tuple[int, ...]) -> Array:
+    """A mask for per-joint values of shape (..., T, J): a frame mask (..., T) (all True when
+    None) broadcast over the joints, or a per-joint mask (..., T, J) as it is (a joint missing in
+    a frame, e.g. a ground truth that has only some joints, or a marker lost for a while)."""
+    if mask is not None and jnp.ndim(mask) == len(shape):
+        m = jnp.asarray(mask)
+        if m.shape != tuple(shape):
+            raise ValueError(f"mask must have shape (..., T) or (..., T, J) = {tuple(shape)}, got {tuple(m.shape)}")
+        return m.astype(bool)
+    return jnp.broadcast_to(_frame_mask(mask, shape[:-1])[..., None], shape)
+
+
 def _diff_mask(mask: Array, n: int) -> Array:
     """(..., T) -> (..., T - n): True where frames t .. t + n are all real (an n-th difference)."""
     T = mask.shape[-1]
@@ -156,20 +168,29 @@ def root_align(joints: Array, root=(0,)) -> Array:
 
 
 @jax.jit
-def procrustes_align(pred: Array, gt: Array) -> Array:
+def procrustes_align(pred: Array, gt: Array, weights=None) -> Array:
     """``pred`` (..., J, 3) moved onto ``gt`` by the least-squares similarity transform per
     frame: ``s R p + t`` with scale s > 0, a *proper* rotation R (det R = +1: a mirrored pose is
     not a rotated pose) and translation t (Umeyama 1991, IEEE TPAMI 13(4), eqs. 38-42).
 
     With the centred point sets X (pred) and Y (gt), ``X^T Y = U S V^T``,
     ``R = V diag(1, 1, d) U^T`` with ``d = sign det(V U^T)``, ``s = tr(diag(1, 1, d) S) / |X|^2``.
+    ``weights`` (..., J) (0/1: a joint mask) fit the transform to the weighted joints only
+    (means and sums weighted; joints of weight 0 may hold NaN) and move every joint by it.
     """
     pred = _points(pred, "pred", "J, 3")
     gt = _points(gt, "gt", "J, 3")
     _same(pred, gt, "pred", "gt")
-    mp = jnp.mean(pred, -2, keepdims=True)
-    mg = jnp.mean(gt, -2, keepdims=True)
-    X, Y = pred - mp, gt - mg
+    if weights is None:
+        w = jnp.ones(pred.shape[:-1], pred.dtype)
+    else:
+        w = jnp.broadcast_to(jnp.asarray(weights, pred.dtype), pred.shape[:-1])
+    wn = (w / jnp.maximum(jnp.sum(w, -1, keepdims=True), 1e-12))[..., None]
+    use = w[..., None] > 0
+    pred0, gt0 = jnp.where(use, pred, 0.0), jnp.where(use, gt, 0.0)
+    mp = jnp.sum(wn * pred0, -2, keepdims=True)
+    mg = jnp.sum(wn * gt0, -2, keepdims=True)
+    X, Y = (pred0 - mp) * jnp.sqrt(wn), (gt0 - mg) * jnp.sqrt(wn)
     H = jnp.swapaxes(X, -1, -2) @ Y  # sum_j x_j y_j^T
     U, S, Vt = jnp.linalg.svd(H)
     # det in closed form: one LAPACK call (the SVD) per program, never two at once (linalg docs)
@@ -177,16 +198,17 @@ def procrustes_align(pred: Array, gt: Array) -> Array:
     c = jnp.concatenate([jnp.ones(d.shape + (2,), pred.dtype), d[..., None]], -1)  # diag(1, 1, d)
     R = jnp.swapaxes(Vt, -1, -2) @ (c[..., :, None] * jnp.swapaxes(U, -1, -2))
     s = safe_div(jnp.sum(c * S, -1), jnp.sum(X * X, axis=(-1, -2)))
-    return s[..., None, None] * (X @ jnp.swapaxes(R, -1, -2)) + mg
+    return s[..., None, None] * ((pred - mp) @ jnp.swapaxes(R, -1, -2)) + mg
 
 
 @partial(jax.jit, static_argnames=("align", "root"))
-def joint_errors(pred: Array, gt: Array, align: str = "root", root=(0,)) -> Array:
+def joint_errors(pred: Array, gt: Array, align: str = "root", root=(0,), weights=None) -> Array:
     """Per-joint Euclidean errors (..., T, J) in metres after an alignment.
 
     ``align``: ``"none"`` (absolute: world coordinates as they are), ``"root"`` (each pose
     translated so that its root is at the origin: the standard "MPJPE without Procrustes" of
-    [000] Table 1) or ``"procrustes"`` (per-frame similarity alignment, :func:`procrustes_align`).
+    [000] Table 1) or ``"procrustes"`` (per-frame similarity alignment, :func:`procrustes_align`,
+    fitted to the joints of nonzero ``weights`` (..., T, J) when given).
     """
     pred = _points(pred, "pred")
     gt = _points(gt, "gt")
@@ -194,15 +216,21 @@ def joint_errors(pred: Array, gt: Array, align: str = "root", root=(0,)) -> Arra
     if align == "root":
         pred, gt = root_align(pred, root), root_align(gt, root)
     elif align == "procrustes":
-        pred = procrustes_align(pred, gt)
+        pred = procrustes_align(pred, gt, weights)
     elif align != "none":
         raise ValueError(f"align must be one of {ALIGNMENTS}, got {align!r}")
     return jnp.linalg.norm(pred - gt, axis=-1)
 
 
 def _errors_mm(pred, gt, mask, align, root):
-    err = joint_errors(pred, gt, align, root) * 1000.0
-    return err, _frame_mask(mask, err.shape[:-1])[..., None]
+    """Per-joint errors (mm) and their weights. ``mask``: (..., T) frames or (..., T, J) joints
+    (a frame counts for root alignment only where every root joint is present)."""
+    shape = jnp.shape(pred)[:-1]
+    m = _joint_mask(mask, shape)
+    if align == "root":
+        m = m & jnp.all(m[..., np.asarray(root, int)], -1, keepdims=True)
+    err = joint_errors(pred, gt, align, root, m.astype(jnp.result_type(pred)) if align == "procrustes" else None)
+    return err * 1000.0, m
 
 
 @partial(jax.jit, static_argnames=("align", "root"))
@@ -252,12 +280,14 @@ def auc(pred: Array, gt: Array, mask=None, *, max_mm: float = AUC_MAX_MM, steps:
 @partial(jax.jit, static_argnames=("root",))
 def root_translation_error(pred: Array, gt: Array, mask=None, *, root=(0,)) -> Array:
     """Global root translation error (mm): mean over real frames of ``|r_pred - r_gt|``, r the
-    root joint (:func:`root_position`) in world coordinates. [000] Table 2."""
+    root joint (:func:`root_position`) in world coordinates. [000] Table 2. A per-joint ``mask``
+    (..., T, J) counts the frames where every root joint is present."""
     pred = _points(pred, "pred")
     gt = _points(gt, "gt")
     _same(pred, gt, "pred", "gt")
     e = jnp.linalg.norm(root_position(pred, root) - root_position(gt, root), axis=-1) * 1000.0
-    return _mean(e, _frame_mask(mask, e.shape), 1)
+    m = jnp.all(_joint_mask(mask, pred.shape[:-1])[..., np.asarray(root, int)], -1)
+    return _mean(e, m, 1)
 
 
 # =========================================================================================
@@ -266,9 +296,11 @@ def root_translation_error(pred: Array, gt: Array, mask=None, *, root=(0,)) -> A
 
 
 def _diff(x: Array, n: int, mask, axis: int = -3):
+    """n-th differences of joints (..., T, J, 3) over time and their (..., T - n, J) mask: a
+    difference counts where its n + 1 frames are real (for a per-joint mask, for that joint)."""
     d = jnp.diff(x, n=n, axis=axis)
-    m = _frame_mask(mask, x.shape[: x.ndim + axis + 1])
-    return d, _diff_mask(m, n)
+    m = jnp.swapaxes(_joint_mask(mask, x.shape[:-1]), -1, -2)  # (..., J, T)
+    return d, jnp.swapaxes(_diff_mask(m, n), -1, -2)
 
 
 @jax.jit
@@ -287,7 +319,6 @@ def smoothness_error(pred: Array, gt: Array, mask=None) -> tuple[Array, Array]:
     dp, w = _diff(pred, 1, mask)
     dg, _ = _diff(gt, 1, mask)
     term = jnp.abs(jnp.linalg.norm(dg, axis=-1) - jnp.linalg.norm(dp, axis=-1)) * 1000.0
-    w = w[..., None]
     return _mean(term, w, 2), _std(term, w, 2)
 
 
@@ -302,7 +333,7 @@ def acceleration_error(pred: Array, gt: Array, fps, mask=None) -> Array:
     ap, w = _diff(pred, 2, mask)
     ag, _ = _diff(gt, 2, mask)
     e = jnp.linalg.norm(ap - ag, axis=-1) * _bcast(fps, ap.dtype, 2) ** 2
-    return _mean(e, w[..., None], 2)
+    return _mean(e, w, 2)
 
 
 @jax.jit
@@ -312,7 +343,7 @@ def jitter(joints: Array, fps, mask=None) -> Array:
     joints = _points(joints, "joints")
     d, w = _diff(joints, 3, mask)
     jerk = jnp.linalg.norm(d, axis=-1) * _bcast(fps, d.dtype, 2) ** 3 / 1000.0
-    return _mean(jerk, w[..., None], 2)
+    return _mean(jerk, w, 2)
 
 
 # =========================================================================================
