@@ -158,3 +158,37 @@ def test_joints_the_layout_does_not_have_and_other_fps_are_errors(tmp_path):
     gt = {"names": ["RKnee"], "joints3d": np.zeros((30, 1, 3)), "fps": 25.0, "frame_offset": 0}
     with pytest.raises(ValueError, match="no resampling"):
         score_result(r, gt)
+
+
+def test_eval_reads_a_clip_whose_ground_truth_lacks_joints(tmp_path):
+    """A clip's gt_keypoints3d may hold NaN (x, y, z) for joints the ground truth does not have:
+    the clip loads, and jmocap eval's metrics (evaluate_motion) run on the joints it has; a
+    partly NaN point or inf is still an error."""
+    from jmocap.data.clip import ClipFormatError, load_clip, save_clip
+
+    clip = load_clip(DEMO)
+    kg = np.array(clip.gt_keypoints3d, np.float32)
+    lack = [0, 15, 16, 17, 18]  # no face joints in this "motion capture"
+    kg[:, lack] = np.nan
+    kg[10:14, 4] = np.nan  # a wrist lost for a while
+    partial = clip.replace(gt_keypoints3d=kg)
+    save_clip(tmp_path / "c.npz", partial)
+    back = load_clip(tmp_path / "c.npz")
+    assert np.isnan(back.gt_keypoints3d[:, lack]).all()
+    rng = np.random.default_rng(0)
+    pred = (clip.gt_keypoints3d + rng.normal(size=kg.shape) * 0.02).astype(np.float32)
+    got = M.evaluate_motion(back, keypoints3d=pred)
+    present = np.isfinite(kg).all(-1)
+    err = np.linalg.norm(pred - np.nan_to_num(kg), axis=-1)[present].mean() * 1000
+    assert got["mpjpe_abs_mm"] == pytest.approx(err, rel=1e-4)
+    keep = [j for j in range(kg.shape[1]) if j not in lack and j != 4]
+    ref = M.pa_mpjpe(pred[:, keep], clip.gt_keypoints3d[:, keep])
+    assert got["pa_mpjpe_mm"] == pytest.approx(float(ref), rel=0.05)  # the wrist's 4 frames aside
+    bad = kg.copy()
+    bad[3, 7, 0] = np.nan  # half a point
+    with pytest.raises(ClipFormatError, match="gt_keypoints3d"):
+        clip.replace(gt_keypoints3d=bad)  # validated on construction
+    bad = kg.copy()
+    bad[3, 7] = np.inf
+    with pytest.raises(ClipFormatError, match="gt_keypoints3d"):
+        clip.replace(gt_keypoints3d=bad)

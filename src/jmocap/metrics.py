@@ -380,7 +380,7 @@ def reprojection_error(pred: Array, gt: Array, camera: Camera, mask=None) -> tup
     gt = _points(gt, "gt")
     _same(pred, gt, "pred", "gt")
     e = jnp.linalg.norm(project(camera, pred) - project(camera, gt), axis=-1)
-    w = _frame_mask(mask, e.shape[:-1])[..., None]
+    w = _joint_mask(mask, e.shape)  # frames (..., T) or joints (..., T, J)
     return _mean(e, w, 2), _std(e, w, 2)
 
 
@@ -830,6 +830,16 @@ def _finite(d: Mapping[str, Any], side: str, mask: np.ndarray) -> dict[str, np.n
         a = np.asarray(v)
         if a.ndim and a.shape[0] != mask.shape[0]:
             raise ValueError(f"{side} {k!r} has {a.shape[0]} frames (shape {a.shape}), the mask {mask.shape[0]}")
+        if side == "gt" and k == "keypoints3d" and a.ndim == 3:
+            # a joint the ground truth lacks is NaN in x, y, z: left out by per-joint masks
+            a = np.where(np.isnan(a).all(-1, keepdims=True), np.nan, a)
+            bad = ~np.isfinite(np.where(np.isnan(a), 0.0, a)[mask])
+            if bad.any():
+                t = int(np.nonzero(mask)[0][np.argmax(bad.reshape(bad.shape[0], -1).any(1))])
+                raise ValueError(f"{side} {k!r} has non-finite values (other than a whole missing joint), "
+                                 f"first at frame {t}")
+            out[k] = a
+            continue
         bad = ~np.isfinite(a[mask]) if a.ndim else ~np.isfinite(a)
         if bad.any():
             t = int(np.nonzero(mask)[0][np.argmax(bad.reshape(bad.shape[0], -1).any(1))]) if a.ndim else 0
@@ -902,19 +912,23 @@ def _metric_values(p, g, m, fps, camera, root, pred_mass, gt_mass) -> dict[str, 
 
     kp, kg = p.get("keypoints3d"), g.get("keypoints3d")
     if kp is not None and kg is not None:
+        # per-joint mask: the joints the ground truth has (NaN: missing) on the real frames
+        jm = m[:, None] & jnp.all(jnp.isfinite(kg), -1)
+        kg = jnp.where(jm[..., None], kg, 0.0)
         for name, align in (("", "root"), ("pa_", "procrustes")):
-            out[f"{name}mpjpe_mm"] = mpjpe(kp, kg, m, align=align, root=root)
-            out[f"{name}pck150_pct"] = pck(kp, kg, m, align=align, root=root)
-            out[f"{name}auc_pct"] = auc(kp, kg, m, align=align, root=root)
-        out["mpjpe_abs_mm"] = mpjpe(kp, kg, m, align="none")
-        out["root_err_mm"] = root_translation_error(kp, kg, m, root=root)
-        out["e_smooth_mm"], out["sigma_smooth_mm"] = smoothness_error(kp, kg, m)
-        out["accel_err_m_s2"] = acceleration_error(kp, kg, fps, m)
+            out[f"{name}mpjpe_mm"] = mpjpe(kp, kg, jm, align=align, root=root)
+            out[f"{name}pck150_pct"] = pck(kp, kg, jm, align=align, root=root)
+            out[f"{name}auc_pct"] = auc(kp, kg, jm, align=align, root=root)
+        out["mpjpe_abs_mm"] = mpjpe(kp, kg, jm, align="none")
+        out["root_err_mm"] = root_translation_error(kp, kg, jm, root=root)
+        out["e_smooth_mm"], out["sigma_smooth_mm"] = smoothness_error(kp, kg, jm)
+        out["accel_err_m_s2"] = acceleration_error(kp, kg, fps, jm)
         if camera is not None:
-            out["reproj_input_px"], out["reproj_input_std_px"] = reprojection_error(kp, kg, camera, m)
-            pivot = _mean(root_position(kg, root).T, m[None], 1)  # the mean gt root (3,)
+            out["reproj_input_px"], out["reproj_input_std_px"] = reprojection_error(kp, kg, camera, jm)
+            root_ok = jnp.all(jm[:, np.asarray(root, int)], -1)
+            pivot = _mean(root_position(kg, root).T, root_ok[None], 1)  # the mean gt root (3,)
             side = side_view_camera(camera, pivot)
-            out["reproj_side_px"], out["reproj_side_std_px"] = reprojection_error(kp, kg, side, m)
+            out["reproj_side_px"], out["reproj_side_std_px"] = reprojection_error(kp, kg, side, jm)
     if kp is not None:
         out["jitter_km_s3"] = jitter(kp, fps, m)
 

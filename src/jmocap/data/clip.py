@@ -21,6 +21,7 @@ extrinsics            float64     (4, 4)      optional; world->camera ``[R t; 0 
 gt_q                  float32     (T, nq)     optional; MuJoCo qpos (root pos, quat wxyz, hinges)
 gt_qd                 float32     (T, nv)     optional; MuJoCo qvel, nv = nq - 1
 gt_keypoints3d        float32     (T, J, 3)   optional; world-frame joints in the clip's layout
+                                              (NaN x, y, z: a joint the ground truth lacks)
 gt_contacts           float32     (T, 4)      optional; {0, 1}: L heel, L toe, R heel, R toe
 gt_tau                float32     (T, nv)     optional; generalised forces
 gt_grf                float32     (T, 4, 3)   optional; world-frame force per contact point
@@ -374,13 +375,17 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
                 raise ClipFormatError(
                     f"{where}: field 'gt_keypoints3d' must have shape (T, {J}, 3), got {a.shape}"
                 )
+            # a joint the ground truth does not have (in a frame, or at all) is NaN in x, y, z:
+            # the metrics leave it out (per-joint masks); anything else non-finite is an error
+            _check_finite(np.where(np.isnan(a).all(-1, keepdims=True), 0.0, a), key, where)
         elif key in _GT_SHAPES:
             if a.shape[1:] != _GT_SHAPES[key]:
                 shape = ", ".join(["T"] + [str(n) for n in _GT_SHAPES[key]])
                 raise ClipFormatError(
                     f"{where}: field {key!r} must have shape ({shape}), got {a.shape}"
                 )
-        _check_finite(a, key, where)
+        if key != "gt_keypoints3d":
+            _check_finite(a, key, where)
         if key == "gt_contacts":
             bad = (a != 0) & (a != 1)
             if bad.any():
