@@ -271,7 +271,7 @@ def cmd_render(args) -> int:
 
 
 # =========================================================================================
-# jmocap export / jmocap view
+# jmocap export / jmocap score / jmocap view: results made earlier
 # =========================================================================================
 
 def _result_paths(path: str):

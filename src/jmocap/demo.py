@@ -68,6 +68,7 @@ def run_demo(
     # replaced, not resumed (resuming refuses a folder written with other settings)
     for sub in ("results", "export"):
         if (out / sub).is_dir():
+            log(f"jmocap demo: replacing the previous demo output {out / sub}")
             shutil.rmtree(out / sub)
     log(f"jmocap demo: reconstructing {assets / 'input'} -> {out / 'results'}")
     bar = (lambda n: Progress(n, "reconstruct")) if progress else None
