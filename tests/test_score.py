@@ -133,6 +133,8 @@ def test_a_clip_with_3d_ground_truth_scores_its_own_result(tmp_path):
     _result_file(tmp_path / "demo_walk.npz", frames=120)
     s = score_result(load_result(tmp_path / "demo_walk.npz"), load_ground_truth(DEMO))
     assert s["mpjpe_abs_mm"] < 1e-3 and s["joints"] == 25
+    # the result's feet (the simulated ground truth's): on the floor, never 3 cm under it
+    assert s["pnp_pct"] > 90 and s["penetrate_pct"] == 0
 
 
 @pytest.mark.parametrize("data, words", [

@@ -162,11 +162,19 @@ def score_result(result: dict[str, Any], gt: dict[str, Any], *, where: str = "re
         "accel_err_m_s2": M.acceleration_error(P, G, fps, m),
         "jitter_km_s3": M.jitter(jnp.asarray(pred_all, f32), fps),
     }
-    if result.get("q") is not None:
+    if result.get("q") is not None:  # the contact sites of the result's motion (MuJoCo C kinematics)
+        import mujoco
+
         model = result_model(result)
-        feet = M.motion_quantities(model, jnp.asarray(result["q"], f32), fps, layout)["feet"]
-        out["pnp_pct"] = M.non_penetration(feet)
-        out["penetrate_pct"] = M.foot_penetration(feet)
+        mj, d = model.mj, mujoco.MjData(model.mj)
+        sites = list(model.topo.contact_sites)
+        feet = np.zeros((T, len(sites), 3))
+        for t, x in enumerate(np.asarray(result["q"], np.float64)):
+            d.qpos[:] = x
+            mujoco.mj_kinematics(mj, d)
+            feet[t] = d.site_xpos[sites]
+        out["pnp_pct"] = M.non_penetration(jnp.asarray(feet, f32))
+        out["penetrate_pct"] = M.foot_penetration(jnp.asarray(feet, f32))
     scores = {k: float(v) for k, v in out.items()}
     scores["frames"] = float(np.any(present, -1).sum())
     scores["joints"] = float(len(idx))
