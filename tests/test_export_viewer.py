@@ -189,3 +189,48 @@ def test_page_script_draws_the_character_where_mujoco_puts_it(tmp_path):
     w = p["weight"]
     np.testing.assert_allclose(out["left"], 100 * r["grf"][:, :2, 2].sum(1) / w, rtol=1e-4, atol=1e-3)
     np.testing.assert_allclose(out["right"], 100 * r["grf"][:, 2:, 2].sum(1) / w, rtol=1e-4, atol=1e-3)
+
+
+UI_SCRIPT = r"""
+const fs = require("fs");
+const html = fs.readFileSync(process.argv[2], "utf8");
+const grab = (id) => html.split(`id="${id}">`)[1].split("</script>")[0];
+const ctx = new Proxy({}, { get: (o, k) => (k in o ? o[k] : () => {}), set: (o, k, v) => { o[k] = v; return true; } });
+const els = {};
+function el(id) {
+  return els[id] = els[id] || { id, width: 720, height: 480, value: "0", max: "0", className: "",
+    textContent: id === "jmocap-data" ? grab("jmocap-data") : "", rows: [],
+    listeners: {}, addEventListener(t, f) { this.listeners[t] = f; }, getContext() { return ctx; },
+    appendChild(c) { this.rows.push(c); } };
+}
+let n = 0;
+global.document = { getElementById: el, querySelector: () => el("tbody"), querySelectorAll: () => [],
+                    createElement: () => el("e" + (n++)), addEventListener() {} };
+global.window = { addEventListener() {} };
+let frames = 0;
+global.requestAnimationFrame = (f) => { if (frames++ < 3) f(frames * 16); };
+const JM = new Function("module", grab("jmocap-core") + "; return JM;")(undefined);
+new Function("JM", grab("jmocap-ui"))(JM);
+const out = { rows: els["tbody"].rows.length, max: els["time"].max };
+els["time"].value = "10"; els["time"].listeners.input();
+out.clock = els["clock"].textContent;
+els["play"].listeners.click();
+out.play = els["play"].textContent;
+console.log(JSON.stringify(out));
+"""
+
+
+@pytest.mark.skipif(shutil.which("node") is None, reason="Node.js is not installed")
+def test_page_wiring_runs_against_a_minimal_dom(tmp_path):
+    """The page's UI script (clip list, slider, play button) runs against a minimal DOM: one row
+    per clip, the slider spans the clip and moves the clock, the button toggles playing."""
+    r = _result()
+    page = tmp_path / "view.html"
+    page.write_text(viewer_html([clip_payload(r), clip_payload(_result(forces=False), name="kin")]))
+    script = tmp_path / "ui.js"
+    script.write_text(UI_SCRIPT)
+    run = subprocess.run(["node", str(script), str(page)], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    assert out["rows"] == 2 and int(out["max"]) == len(r["q"]) - 1
+    assert out["clock"] == f"{10 / r['fps']:.2f} s" and out["play"] == "pause"
