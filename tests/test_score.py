@@ -194,3 +194,36 @@ def test_eval_reads_a_clip_whose_ground_truth_lacks_joints(tmp_path):
     bad[3, 7] = np.inf
     with pytest.raises(ClipFormatError, match="gt_keypoints3d"):
         clip.replace(gt_keypoints3d=bad)
+
+
+def test_force_plates_and_contacts_score_the_forces_and_feet(tmp_path):
+    """Ground truth with per-foot force-plate forces and contact labels (the demo clip's own):
+    the ground-truth motion and forces as the result score a net GRF error of ~0 and a per-foot
+    correlation of 1; its foot skate and floating equal jmocap eval's for the same motion; forces
+    1.1x too large are a 10 %-of-the-mean-force error; a result without forces gets no force scores."""
+    from jmocap.data.clip import load_clip
+
+    clip = load_clip(DEMO)
+    arrays = {
+        "format": np.array("jmocap-result-1"), "name": np.array("demo_walk"), "method": np.array("pip"),
+        "q": clip.gt_q.astype(np.float32), "fps": np.array(clip.fps), "height_m": np.array(clip.height_m),
+        "mass_kg": np.array(clip.mass_kg), "keypoints3d": clip.gt_keypoints3d.astype(np.float32),
+        "layout": np.array("body25"), "forces_estimated": np.array(True), "assumed": np.array("[]"),
+        "grf": clip.gt_grf.astype(np.float32), "tau": clip.gt_tau.astype(np.float32),
+    }
+    write_result(tmp_path / "r.npz", arrays)
+    gt = load_ground_truth(DEMO)
+    s = score_result(load_result(tmp_path / "r.npz"), gt)
+    assert s["grf_err_pct_bw"] < 0.01 and s["foot_grf_corr"] == pytest.approx(1.0, abs=1e-5)
+    ref = M.evaluate_motion(clip, q=clip.gt_q)
+    assert s["skate_pct"] == pytest.approx(ref["skate_pct"], abs=1e-3)
+    assert s["float_pct"] == pytest.approx(ref["float_pct"], abs=1e-3)
+    write_result(tmp_path / "big.npz", dict(arrays, grf=(1.1 * clip.gt_grf).astype(np.float32)))
+    s = score_result(load_result(tmp_path / "big.npz"), gt)
+    w = clip.mass_kg * 9.81
+    want = 10.0 * np.mean(np.linalg.norm(clip.gt_grf.sum(1), axis=-1)) / w
+    assert s["grf_err_pct_bw"] == pytest.approx(want, rel=2e-3)
+    write_result(tmp_path / "kin.npz", {k: v for k, v in arrays.items() if k not in ("grf", "tau")}
+                 | {"forces_estimated": np.array(False)})
+    s = score_result(load_result(tmp_path / "kin.npz"), gt)
+    assert "grf_err_pct_bw" not in s and "skate_pct" in s

@@ -15,6 +15,14 @@ key                 shape         meaning
                                   ``(x, y, z) -> (x, -z, y)``, as the camera files)
 ``floor_height``    () optional   the floor's coordinate along the up axis (default 0)
 ``frame_offset``    () optional   the result's frame of the ground truth's frame 0 (default 0)
+``contacts``        (T, 4) opt.   foot contacts, 0/1, at left heel, left toe, right heel, right
+                                  toe (:data:`jmocap.constants.CONTACT_SITES`): foot skate and
+                                  floating of the result's feet
+``foot_grf``        (T, 2, 3) opt.  measured ground reaction force per foot (N; left, right;
+                                  force plates), NaN where not measured: the result's net GRF
+                                  error and per-foot vertical correlation
+``mass_kg``         () optional   the subject's mass (the ground truth's body weight for % BW;
+                                  default: the result's)
 ==================  ============  =============================================================
 
 A jmocap clip ``.npz`` with ``gt_keypoints3d`` is ground truth too (every joint of its layout).
@@ -52,6 +60,10 @@ SCORES = {
     "accel_err_m_s2": ("acceleration error", "m/s^2"),
     "jitter_km_s3": ("jitter (result)", "km/s^3"),
     "pnp_pct": ("non-penetration (result)", "%"),
+    "skate_pct": ("foot skate (>2 cm in contact)", "%"),
+    "float_pct": ("foot floating (>3 cm in contact)", "%"),
+    "grf_err_pct_bw": ("net GRF error", "% BW"),
+    "foot_grf_corr": ("per-foot vertical GRF correlation", ""),
     "penetrate_pct": ("feet > 3 cm under the floor (result)", "%"),
     "frames": ("frames scored", ""),
     "joints": ("joints scored", ""),
@@ -84,10 +96,13 @@ def load_ground_truth(path: str | os.PathLike) -> dict[str, Any]:
             if clip.gt_keypoints3d is None:
                 raise FormatError(f"{where}: field 'gt_keypoints3d': the clip has no 3D ground truth")
             return {"names": list(get_layout(clip.layout).joints), "joints3d": np.asarray(clip.gt_keypoints3d, float),
-                    "fps": float(clip.fps), "frame_offset": 0}
+                    "fps": float(clip.fps), "frame_offset": 0, "contacts": clip.gt_contacts,
+                    "foot_grf": None if clip.gt_foot_force is None else np.asarray(clip.gt_foot_force, float),
+                    "mass_kg": clip.mass_kg}
     else:
         raise FormatError(f"{where}: a ground-truth joint file is .npz or .json")
-    known = {"format", "joint_names", "joints3d", "fps", "world_up", "floor_height", "frame_offset", "name"}
+    known = {"format", "joint_names", "joints3d", "fps", "world_up", "floor_height", "frame_offset", "name",
+             "contacts", "foot_grf", "mass_kg"}
     for k in data:
         if k not in known:
             raise FormatError(f"{where}: field {k!r}: unknown key (known: {', '.join(sorted(known))})")
@@ -113,7 +128,25 @@ def load_ground_truth(path: str | os.PathLike) -> dict[str, Any]:
         X = X @ Y_UP_TO_Z_UP.T
     X = X - np.array([0.0, 0.0, floor])
     off = int(np.asarray(data.get("frame_offset", 0)))
-    return {"names": names, "joints3d": X, "fps": fps, "frame_offset": off}
+    out = {"names": names, "joints3d": X, "fps": fps, "frame_offset": off, "contacts": None, "foot_grf": None,
+           "mass_kg": None}
+    if data.get("contacts") is not None:
+        c = np.asarray(data["contacts"], np.float64)
+        if c.shape != (len(X), 4) or not np.isin(c, (0.0, 1.0)).all():
+            raise FormatError(f"{where}: field 'contacts' must be (T={len(X)}, 4) of 0/1, got shape {c.shape}")
+        out["contacts"] = c
+    if data.get("foot_grf") is not None:
+        f = np.asarray([[[math.nan if v is None else v for v in foot] for foot in fr] for fr in data["foot_grf"]]
+                       if isinstance(data["foot_grf"], list) else data["foot_grf"], np.float64)
+        if f.shape != (len(X), 2, 3) or np.isinf(f).any():
+            raise FormatError(f"{where}: field 'foot_grf' must be (T={len(X)}, 2, 3) finite or NaN, got {f.shape}")
+        out["foot_grf"] = f @ Y_UP_TO_Z_UP.T if up == "y" else f
+    if data.get("mass_kg") is not None:
+        mass = float(np.asarray(data["mass_kg"]))
+        if not (math.isfinite(mass) and mass > 0):
+            raise FormatError(f"{where}: field 'mass_kg' must be positive, got {mass}")
+        out["mass_kg"] = mass
+    return out
 
 
 def score_result(result: dict[str, Any], gt: dict[str, Any], *, where: str = "result") -> dict[str, float]:
@@ -175,6 +208,23 @@ def score_result(result: dict[str, Any], gt: dict[str, Any], *, where: str = "re
             feet[t] = d.site_xpos[sites]
         out["pnp_pct"] = M.non_penetration(jnp.asarray(feet, f32))
         out["penetrate_pct"] = M.foot_penetration(jnp.asarray(feet, f32))
+        if gt.get("contacts") is not None:
+            c = jnp.asarray(gt["contacts"][a - off:b - off], f32)
+            out["skate_pct"] = M.foot_skate(jnp.asarray(feet[a:b], f32), c)
+            out["float_pct"] = M.foot_floating(jnp.asarray(feet[a:b], f32), c)
+    forces = bool(result.get("forces_estimated", True)) and result.get("grf") is not None
+    if gt.get("foot_grf") is not None and forces:
+        from jmocap.constants import GRAVITY
+
+        mass = float(result.get("mass_kg") or result_model(result).total_mass)
+        gt_mass = gt.get("mass_kg") or mass
+        fg = gt["foot_grf"][a - off:b - off]
+        measured = np.isfinite(fg).all((-1, -2))
+        g4 = np.zeros((len(fg), 4, 3))
+        g4[:, 0], g4[:, 2] = np.nan_to_num(fg[:, 0]), np.nan_to_num(fg[:, 1])  # a foot's force at its heel
+        pg = jnp.asarray(np.asarray(result["grf"], np.float64)[a:b], f32)
+        out["grf_err_pct_bw"] = M.grf_error(pg, jnp.asarray(g4, f32), mass * GRAVITY, gt_mass * GRAVITY, measured)
+        out["foot_grf_corr"] = M.foot_grf_correlation(pg, jnp.asarray(g4, f32), measured)
     scores = {k: float(v) for k, v in out.items()}
     scores["frames"] = float(np.any(present, -1).sum())
     scores["joints"] = float(len(idx))
