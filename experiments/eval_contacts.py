@@ -109,15 +109,6 @@ def predict_all(clips, params, meta, batch: int = 8) -> dict[str, list[np.ndarra
     return out
 
 
-def balanced_accuracy(p: np.ndarray, g: np.ndarray) -> float:
-    """Mean of the recall of "in contact" and of "not in contact" (%), pooled; NaN where a class
-    is absent."""
-    p, g = np.asarray(p) > 0.5, np.asarray(g) > 0.5
-    if not g.any() or g.all():
-        return float("nan")
-    return 50.0 * (np.sum(p & g) / np.sum(g) + np.sum(~p & ~g) / np.sum(~g))
-
-
 def score(preds: dict[str, list[np.ndarray]], gts: list[np.ndarray]) -> dict[str, dict]:
     """Pooled metrics per method: overall and per contact point, plus the mean over clips of
     the per-clip overall F1."""
@@ -128,7 +119,6 @@ def score(preds: dict[str, list[np.ndarray]], gts: list[np.ndarray]) -> dict[str
     for k, ps in preds.items():
         p = np.concatenate(ps)
         r = {"all": {n: float(v) for n, v in M.contact_classification(p, gt).items()}}
-        r["all"]["balanced_accuracy"] = balanced_accuracy(p, gt)
         for i, name in enumerate(POINTS):
             r[name] = {n: float(v) for n, v in M.contact_classification(p[:, i:i + 1], gt[:, i:i + 1]).items()}
         per_clip = [float(M.contact_classification(a, b)["f1"]) for a, b in zip(ps, gts, strict=True)]

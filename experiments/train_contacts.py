@@ -309,10 +309,12 @@ def voted_f1(variables, clips) -> dict:
         inp = ClipInputs.from_clip(c, _bucket(c.num_frames))
         preds.append(np.asarray(fn(variables, inp, c.layout))[: c.num_frames] > 0.5)
         gts.append(np.asarray(c.gt_contacts) > 0.5)
+    from jmocap import metrics as M
+
     pr, gt = np.concatenate(preds), np.concatenate(gts)
-    bacc = 50.0 * (np.sum(pr & gt) / max(np.sum(gt), 1) + np.sum(~pr & ~gt) / max(np.sum(~gt), 1))
+    scores = M.contact_classification(pr.astype(np.float32), gt.astype(np.float32))
     return {"f1": round(_f1(pr, gt), 2), "accuracy": round(100.0 * float(np.mean(pr == gt)), 2),
-            "balanced_accuracy": round(float(bacc), 2)}
+            "balanced_accuracy": round(float(scores["balanced_accuracy"]), 2)}
 
 
 def main(argv=None) -> int:

@@ -392,12 +392,14 @@ def test_contact_classification_counts():
     close(r["precision"], 60.0)
     close(r["recall"], 75.0)
     close(r["f1"], 66.6667)
+    close(r["balanced_accuracy"], 62.5)  # (recall 3/4 + specificity 2/4) / 2
     # frame 1 alone: acc 3/4, precision 2/3, recall 2/2, F1 4/5
     r = M.contact_classification(prob, gt, np.array([False, True]))
     close(r["accuracy"], 75.0)
     close(r["precision"], 66.6667)
     close(r["recall"], 100.0)
     close(r["f1"], 80.0)
+    close(r["balanced_accuracy"], 75.0)  # (2/2 + 1/2) / 2
     # nothing predicted in contact: precision undefined
     assert np.isnan(M.contact_classification(np.zeros((1, 4)), gt[:1])["precision"])
 

@@ -672,10 +672,12 @@ def zmp_distance(zmp: Array, normal_force: Array, weight, support: Array, contac
 
 @jax.jit
 def contact_classification(prob: Array, gt: Array, mask=None, *, threshold: float = 0.5) -> dict[str, Array]:
-    """Accuracy, precision, recall and F1 (%) of the foot-contact labels, pooled over the four
-    points (L heel, L toe, R heel, R toe) and the real frames: a point is predicted in contact
-    when ``prob > threshold``; ``gt`` (..., T, P) holds the {0, 1} labels. Precision (recall) is
-    NaN when nothing is predicted (labelled) in contact; F1 = 2 TP / (2 TP + FP + FN)."""
+    """Accuracy, balanced accuracy, precision, recall and F1 (%) of the foot-contact labels,
+    pooled over the four points (L heel, L toe, R heel, R toe) and the real frames: a point is
+    predicted in contact when ``prob > threshold``; ``gt`` (..., T, P) holds the {0, 1} labels.
+    Precision (recall) is NaN when nothing is predicted (labelled) in contact; F1 = 2 TP / (2 TP
+    + FP + FN); balanced accuracy the mean of the recalls of "in contact" and "not in contact"
+    (NaN when either class is absent: a majority-class guess scores 50)."""
     prob = _points(prob, "contact_prob", "T, P")
     gt = jnp.asarray(gt)
     _same(prob, gt, "contact_prob", "gt_contacts")
@@ -689,6 +691,7 @@ def contact_classification(prob: Array, gt: Array, mask=None, *, threshold: floa
     tp, fp, fn, tn = count(pr & g), count(pr & ~g), count(~pr & g), count(~pr & ~g)
     return {
         "accuracy": _pct(tp + tn, tp + tn + fp + fn),
+        "balanced_accuracy": 0.5 * (_pct(tp, tp + fn) + _pct(tn, tn + fp)),
         "precision": _pct(tp, tp + fp),
         "recall": _pct(tp, tp + fn),
         "f1": _pct(2 * tp, 2 * tp + fp + fn),
