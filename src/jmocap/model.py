@@ -501,3 +501,17 @@ def _quat2mat_np(q: np.ndarray) -> np.ndarray:
     for i, qi in enumerate(q):
         mujoco.mju_quat2Mat(out[i].reshape(9), qi / np.linalg.norm(qi))
     return out
+
+
+def site_trajectory(mj: mujoco.MjModel, q, sites) -> np.ndarray:
+    """World positions (T, len(sites), 3) of the sites ``sites`` over a motion ``q`` (T, nq), by
+    MuJoCo C kinematics (float64, host side: for exports, scoring and data generation)."""
+    q = np.asarray(q, np.float64)
+    idx = list(sites)
+    d = mujoco.MjData(mj)
+    out = np.empty((q.shape[0], len(idx), 3))
+    for t in range(q.shape[0]):
+        d.qpos[:] = q[t]
+        mujoco.mj_kinematics(mj, d)
+        out[t] = d.site_xpos[idx]
+    return out

@@ -196,16 +196,10 @@ def score_result(result: dict[str, Any], gt: dict[str, Any], *, where: str = "re
         "jitter_km_s3": M.jitter(jnp.asarray(pred_all, f32), fps),
     }
     if result.get("q") is not None:  # the contact sites of the result's motion (MuJoCo C kinematics)
-        import mujoco
+        from jmocap.model import site_trajectory
 
         model = result_model(result)
-        mj, d = model.mj, mujoco.MjData(model.mj)
-        sites = list(model.topo.contact_sites)
-        feet = np.zeros((T, len(sites), 3))
-        for t, x in enumerate(np.asarray(result["q"], np.float64)):
-            d.qpos[:] = x
-            mujoco.mj_kinematics(mj, d)
-            feet[t] = d.site_xpos[sites]
+        feet = site_trajectory(model.mj, result["q"], model.topo.contact_sites)
         out["pnp_pct"] = M.non_penetration(jnp.asarray(feet, f32))
         out["penetrate_pct"] = M.foot_penetration(jnp.asarray(feet, f32))
         if gt.get("contacts") is not None:

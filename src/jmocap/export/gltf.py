@@ -76,7 +76,7 @@ import pygltflib as G
 
 from jmocap.export.bvh import _check_fps, check_q
 from jmocap.io import atomic_write
-from jmocap.model import Model
+from jmocap.model import Model, site_trajectory
 
 __all__ = ["TO_GLTF", "write_glb"]
 
@@ -227,13 +227,7 @@ def _animated(mj: mujoco.MjModel, b: int) -> tuple[bool, bool]:
 
 def _site_positions(mj: mujoco.MjModel, q: np.ndarray, sites: Sequence[int]) -> np.ndarray:
     """(T, len(sites), 3) world positions of ``sites`` (MuJoCo kinematics), glTF axes."""
-    d = mujoco.MjData(mj)
-    out = np.zeros((len(q), len(sites), 3))
-    for t, qt in enumerate(q):
-        d.qpos[:] = qt
-        mujoco.mj_kinematics(mj, d)
-        out[t] = d.site_xpos[list(sites)]
-    return out @ TO_GLTF.T
+    return site_trajectory(mj, q, sites) @ TO_GLTF.T
 
 
 # ======================================================================================

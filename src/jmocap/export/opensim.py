@@ -133,7 +133,7 @@ import numpy as np
 from jmocap.data.clip import FormatError
 from jmocap.io import atomic_write
 from jmocap.layouts import get_layout
-from jmocap.model import Model
+from jmocap.model import Model, site_trajectory
 
 __all__ = [
     "AXES",
@@ -417,18 +417,6 @@ def _coordinates(mj: mujoco.MjModel, q: np.ndarray) -> tuple[list[str], np.ndarr
     return [n for n, *_ in spec], np.stack(cols, 1)
 
 
-def _site_positions(mj: mujoco.MjModel, q: np.ndarray, sites: Sequence[int]) -> np.ndarray:
-    """World positions (T, len(sites), 3) of sites over a motion (MuJoCo C kinematics)."""
-    d = mujoco.MjData(mj)
-    out = np.empty((q.shape[0], len(sites), 3))
-    idx = list(sites)
-    for t in range(q.shape[0]):
-        d.qpos[:] = q[t]
-        mujoco.mj_kinematics(mj, d)
-        out[t] = d.site_xpos[idx]
-    return out
-
-
 def grf_table(result: dict[str, Any], model: Model | None = None) -> tuple[list[str], np.ndarray]:
     """The ground reaction forces per foot in OpenSim's columns: (names, values (T, 18)).
 
@@ -442,7 +430,7 @@ def grf_table(result: dict[str, Any], model: Model | None = None) -> tuple[list[
     sites = model.topo.contact_sites
     if len(sites) != 4:
         raise ValueError(f"OpenSim export: the model has {len(sites)} foot contact sites, expected 4")
-    pos = to_opensim(_site_positions(model.mj, q, sites))  # (T, 4, 3)
+    pos = to_opensim(site_trajectory(model.mj, q, sites))  # (T, 4, 3)
     f = to_opensim(grf)
     return _grf_columns(pos, f)
 
@@ -847,7 +835,7 @@ def write_opensim(
         sites = model.topo.contact_sites
         if len(sites) != 4:
             raise ValueError(f"OpenSim export: the model has {len(sites)} foot contact sites, expected 4")
-        grf_names, grf_values = _grf_columns(to_opensim(_site_positions(model.mj, q, sites)), to_opensim(grf))
+        grf_names, grf_values = _grf_columns(to_opensim(site_trajectory(model.mj, q, sites)), to_opensim(grf))
         grf_file = f"{stem}_grf.mot"
         files["grf"] = (grf_file, _storage_text(grf_file, grf_names, time, grf_values, in_degrees=False))
         files["external_loads"] = (f"{stem}_grf.xml", external_loads_xml(model, grf_file, stem))

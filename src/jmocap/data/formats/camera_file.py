@@ -161,8 +161,7 @@ def _world_to_camera(data, path) -> tuple[np.ndarray | None, str | None]:
                        "R_world_to_cam": "'t_world_to_cam'", "t_world_to_cam": "'R_world_to_cam'",
                        "camera_position": "'camera_rotation'", "camera_rotation": "'camera_position'"}.get(k, "")
             raise _ferr(path, f"needs {partner} with it", field=k)
-    names = {name for _, name in forms}
-    if len(names) > 1 or len(forms) > 1 and len({frozenset(keys) for keys, _ in forms}) > 1:
+    if len(forms) > 1:  # two forms (or one form with both 't' and 'tvec')
         keys = sorted({k for keys, _ in forms for k in keys})
         raise _ferr(path, f"gives the extrinsics more than one way ({', '.join(keys)}): give one", field=keys[0])
     keys, name = forms[0]

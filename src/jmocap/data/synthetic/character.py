@@ -20,6 +20,7 @@ from jmocap.constants import DEFAULT_HEIGHT_M
 from jmocap.data.synthetic.rotations import _exp_rot, _log_rot, _quat2mat, _ry, _rz
 from jmocap.layouts import CONTACT_SITES
 from jmocap.model import character as scaled_character
+from jmocap.model import site_trajectory
 
 _DEBUG = False
 
@@ -393,10 +394,4 @@ def _solve_all(ch: Character, q, R_t, p_t, planted, first: bool, lower=None):
 
 def site_trajectories(ch: Character, q: np.ndarray, sites) -> np.ndarray:
     """World positions (T, n, 3) of the given site ids along a trajectory (MuJoCo C FK)."""
-    out = np.zeros((len(q), len(sites), 3))
-    d = ch.d
-    for k in range(len(q)):
-        d.qpos[:] = q[k]
-        mujoco.mj_kinematics(ch.mj, d)
-        out[k] = d.site_xpos[sites]
-    return out
+    return site_trajectory(ch.mj, q, sites)
