@@ -13,8 +13,9 @@ Commands: ``data synth`` (synthetic clip archives), ``data info`` (summarise an 
 ``reconstruct`` (batch reconstruction of an archive), ``eval`` (the metrics table of methods
 over an archive with ground truth), ``render`` (video and force plots of a result), ``export``
 (OpenSim, glTF and BVH files of results), ``view`` (a self-contained HTML viewer page),
-``score`` (results against 3D ground truth with any subset of joints) and ``demo`` (all of it
-on the shipped sample).
+``score`` (results against 3D ground truth with any subset of joints), ``video`` (from a video
+file: 2D keypoints, reconstruction and an overlay video; the ``video`` extra) and ``demo`` (all
+of it on the shipped sample).
 """
 
 from __future__ import annotations
@@ -646,6 +647,231 @@ def _method_list() -> str:
     from jmocap.methods import method_names
 
     return ", ".join(method_names())
+
+
+# =========================================================================================
+# jmocap video
+# =========================================================================================
+
+
+def _positive_float(text: str) -> float:
+    v = _number_in(text, 1e-6, 1e6)
+    if v is None:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return v
+
+
+def _unit_float(text: str) -> float:
+    v = _number_in(text, 0.0, 1.0)
+    if v is None:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
+    return v
+
+
+def _count_arg(text: str) -> int:
+    try:
+        n = int(text)
+        if n >= 0:
+            return n
+    except ValueError:
+        pass
+    raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+
+
+def _person_arg(text: str) -> str:
+    t = text.strip().lower()
+    if t in ("largest", "all") or (t.isdigit()):
+        return t
+    raise argparse.ArgumentTypeError(f"expected 'largest', 'all' or a track number K >= 0, got {text!r}")
+
+
+def _video_height_arg(text: str) -> float:
+    h = _number_in(text, 0.5, 2.5)
+    if h is None:
+        raise argparse.ArgumentTypeError(f"expected a height in metres in [0.5, 2.5], got {text!r}")
+    return h
+
+
+@command("video", "from a video file: 2D keypoints (BlazePose), a reconstruction and an overlay video")
+def _video(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Run a 2D pose detector (BlazePose, shipped with jmocap, on the CPU, offline) on every frame "
+        "of VIDEO, track the people across frames (one clip per person, left/right flips repaired), "
+        "and write into OUTPUT: keypoints/<video>_p<K>.npz (a BODY_25 jmocap clip) with its camera "
+        "sidecar, results/ (jmocap reconstruct of those clips: result .npz, manifest.jsonl, "
+        "summary.json), <video>_p<K>_overlay.mp4 (the reconstruction drawn over the video) and "
+        "video.json (what was found). Needs the video extra: pip install 'jmocap[video]' "
+        "(docs/formats.md, 'Video input')."
+    )
+    p.add_argument("video", help="a video file ffmpeg reads (.mp4, .mov, .avi, .mkv, ...)")
+    p.add_argument("output", help="output folder (created; must be empty or a previous jmocap video output "
+                                  "with --overwrite)")
+    p.add_argument("--camera", metavar="FILE",
+                   help="camera file in any form jmocap reads (K, dist, R/t, rvec/tvec, ...; docs/formats.md "
+                        "'Camera sidecar'), for the video's image size; default: f = 1000 px, principal point at "
+                        "the centre, recorded as assumed")
+    p.add_argument("--person", type=_person_arg, default="largest", metavar="largest|all|K",
+                   help="which tracked person to reconstruct: 'largest' (default: the one seen largest and longest, "
+                        "the sum of its body size in pixels over its frames), 'all', or track K (numbered by first "
+                        "frame, then left to right; video.json lists them)")
+    p.add_argument("--method", default=None, metavar="NAME",
+                   help=f"reconstruction method or variant (default {_default_method()}): {_method_list()}")
+    p.add_argument("--params", help="parameters (.msgpack); default: the shipped weights")
+    p.add_argument("--height", type=_video_height_arg, default=None, metavar="M",
+                   help="the subject's height in metres (written into the clip; default: estimated from the 2D "
+                        "keypoints when the camera file has extrinsics, else the nominal 1.75 m character)")
+    p.add_argument("--fps", type=_positive_float, default=None, help="frame rate (default: the camera file's, else the video's)")
+    p.add_argument("--detect-every", type=_count_arg, default=15, metavar="N",
+                   help="run the person detector every N frames to find new people (default 15; 0: only at the "
+                        "start and when a track is lost)")
+    p.add_argument("--min-score", type=_unit_float, default=0.5, metavar="S",
+                   help="detector score to accept a person (default 0.5, MediaPipe's)")
+    p.add_argument("--min-presence", type=_unit_float, default=0.5, metavar="P",
+                   help="pose-presence score below which a track is lost in a frame (default 0.5, MediaPipe's)")
+    p.add_argument("--max-gap", type=_count_arg, default=15, metavar="N",
+                   help="frames a lost track may miss and still continue (written as missing; default 15); a "
+                        "longer gap splits it into two tracks")
+    p.add_argument("--min-frames", type=_count_arg, default=10, metavar="N",
+                   help="tracks with fewer frames with a pose are dropped (default 10)")
+    p.add_argument("--no-flip-repair", action="store_true", help="keep the detector's left/right labels")
+    p.add_argument("--no-overlay", action="store_true", help="no overlay video")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a previous jmocap video output in OUTPUT (its keypoints/, results/ and overlays)")
+    p.add_argument("--host-devices", type=int, default=0, metavar="N",
+                   help="as jmocap reconstruct --host-devices (default 0: one per CPU core)")
+    p.add_argument("--cache-dir", default=_xla_cache_dir(), metavar="DIR",
+                   help="persistent XLA compilation cache ('' for none; default %(default)s)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.epilog = (
+        "exit status: 0 every chosen person reconstructed (and drawn); 1 a reconstruction or an overlay "
+        "failed; 2 bad arguments, or a video / camera file / OUTPUT that cannot be used (missing, not a "
+        "video, nobody found); 130 / 143 stopped by SIGINT / SIGTERM."
+    )
+    p.set_defaults(func=cmd_video)
+
+
+def _prepare_video_output(out, overwrite: bool) -> None:
+    """OUTPUT must be absent, empty, or (with ``overwrite``) a previous ``jmocap video`` output,
+    whose keypoints/, results/ and overlays are removed (nothing else is touched)."""
+    import shutil
+    from pathlib import Path
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: OUTPUT is a file, not a folder")
+    if not out.exists() or not any(out.iterdir()):
+        return
+    summary = out / "video.json"
+    if not summary.is_file():
+        raise ValueError(f"{out}: OUTPUT is not empty and holds no jmocap video output (video.json); choose "
+                         "an empty or new folder")
+    if not overwrite:
+        raise ValueError(f"{out}: OUTPUT holds a previous jmocap video output; pass --overwrite to replace it")
+    try:
+        previous = json.loads(summary.read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{summary}: unreadable ({e}); remove the folder yourself") from None
+    for name in ("keypoints", "results"):
+        if (out / name).is_dir():
+            shutil.rmtree(out / name)
+    for f in previous.get("overlays", []) if isinstance(previous, dict) else []:
+        p = out / Path(str(f)).name
+        if p.suffix == ".mp4" and p.is_file():
+            p.unlink()
+    summary.unlink()
+
+
+def cmd_video(args) -> int:
+    """``jmocap video``: 0 when every chosen person has a result (and an overlay), 1 when a
+    reconstruction or an overlay failed, 2 on an unusable input, 130 / 143 after a signal."""
+    from pathlib import Path
+
+    from jmocap.data.clip import FormatError
+    from jmocap.video import missing_video_packages
+    from jmocap.video.extract import VideoOptions, extract_clips, write_overlays, write_summary
+    from jmocap.video.reader import VideoError
+    from jmocap.video.tracking import TrackOptions
+
+    where = "jmocap video"
+    missing = missing_video_packages()
+    if missing:
+        print(f"{where}: needs {', '.join(missing)}, not installed; video input is the optional video extra: "
+              "pip install 'jmocap[video]'", file=sys.stderr)
+        return 2
+    try:
+        set_host_devices(args.host_devices)
+    except ValueError as e:
+        print(f"{where}: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.output)
+    try:
+        if args.camera is not None and not Path(args.camera).is_file():
+            raise FileNotFoundError(f"{args.camera}: no such camera file")
+        _prepare_video_output(out, args.overwrite)
+        options = VideoOptions(
+            person=args.person, fps=args.fps, camera=args.camera, height_m=args.height,
+            track=TrackOptions(min_detection_score=args.min_score, min_presence=args.min_presence,
+                               detect_every=args.detect_every, max_gap=args.max_gap, min_frames=args.min_frames),
+            repair_flips=not args.no_flip_repair,
+        )
+        bars = []
+
+        def progress(t, total):  # the bar starts with the first frame, when the video's length is known
+            if not bars:
+                bars.append(Progress(total or 0, "video: detect + track", enabled=not args.quiet, unit="frame"))
+            bars[0].update(1)
+
+        try:
+            summary = extract_clips(args.video, out / "keypoints", options, progress=progress)
+        finally:
+            for b in bars:
+                b.close()
+    except KeyboardInterrupt:
+        print(f"\n{where}: interrupted", file=sys.stderr)
+        return 130
+    except (FileNotFoundError, VideoError, FormatError, ValueError, OSError, ImportError) as e:
+        print(f"{where}: {' '.join(str(e).split())}", file=sys.stderr)
+        return 2
+    write_summary(out / "video.json", summary)
+
+    rec = argparse.Namespace(
+        input=str(out / "keypoints"), output=str(out / "results"), params=args.params, method=args.method,
+        config=None, kinematic_only=False, chunk=256, bucket=64, batch=8, host_devices=args.host_devices,
+        image_size=None, height_m="auto", mass_kg=None, bvh=False, max_clips=None, cache_dir=args.cache_dir,
+        limit=[], quiet=args.quiet,
+    )
+    status = run_reconstruct(rec)
+    if status in (130, 143):
+        return status
+    overlays = []
+    if not args.no_overlay:
+        from jmocap.viz import RenderError
+
+        try:
+            overlays = write_overlays(args.video, summary["clips"], out / "results", out)
+        except (RenderError, ImportError, ValueError, OSError) as e:
+            print(f"{where}: overlay: {' '.join(str(e).split())}", file=sys.stderr)
+            status = max(status, 1)
+    summary["results"] = str(out / "results")
+    summary["overlays"] = [str(p) for p in overlays]
+    summary["reconstruct_status"] = status
+    write_summary(out / "video.json", summary)
+    tracks = summary["tracks"]
+    chosen = [t for t in tracks if "clip" in t]
+    print(
+        f"{where}: {summary['frames']} frames ({summary['fps']:g} fps, {summary['ms_per_frame']:.0f} ms/frame detect + "
+        f"track), {len(tracks)} track(s), {len(chosen)} person(s) reconstructed; flips repaired in "
+        f"{sum(t['flipped_frames'] for t in chosen)} frames, {sum(t['frames_lost'] for t in chosen)} frames lost "
+        f"(written as missing); camera {'assumed (f = 1000 px)' if summary['assumed'] else 'from ' + str(args.camera)} "
+        f"-> {out}"
+    )
+    for t in tracks:
+        print(f"  person {t['person']}: frames {t['start']}-{t['end']}, {t['frames_with_pose']} with a pose, "
+              f"{t['frames_lost']} lost, {t['flipped_frames']} flipped, ~{t['size_px']:.0f} px"
+              + (f" -> {t['clip']}" if "clip" in t else ""))
+    if not args.no_overlay and len(overlays) < len(summary["clips"]):
+        status = max(status, 1)
+    return status
 
 
 @command("demo", "reconstruct, score and render the sample shipped in the package")

@@ -11,6 +11,8 @@
   after paper 000 (Shimada et al. 2021), Fig. 4 (vertical GRF, knee and ankle torques, the
   residual root force in body weights).
 * :func:`render_result` does both for a result ``.npz`` (the ``jmocap render`` command).
+* :func:`overlay_frames` / :func:`render_overlay` draw a motion over the input video's own
+  frames from the input camera, with the 2D keypoints (the ``jmocap video`` command).
 
 Headless OpenGL: MuJoCo picks its OpenGL backend from ``MUJOCO_GL`` once, when ``mujoco`` is
 imported (GLFW when unset, which needs a display and, failing, can leave the process unable to
@@ -56,9 +58,11 @@ from jmocap.results import load_result  # noqa: E402
 __all__ = [
     "RenderError",
     "open_renderer",
+    "overlay_frames",
     "plot_forces",
     "render",
     "render_frames",
+    "render_overlay",
     "render_result",
 ]
 
@@ -617,6 +621,137 @@ def _write_mp4(path: Path, frames: Iterator[np.ndarray], fps: float) -> None:
     finally:
         if writer is not None:
             writer.close()
+
+
+# ======================================================================================
+# a motion drawn over the input video's frames (jmocap video)
+# ======================================================================================
+
+OVERLAY_ALPHA = 0.6  # opacity of the rendered humanoid over the input frame
+
+
+def overlay_frames(
+    model: Model,
+    q,
+    frames,
+    camera,
+    *,
+    keypoints2d=None,
+    first_frame: int = 0,
+    layout: str | Layout | None = None,
+    alpha: float = OVERLAY_ALPHA,
+    quality: str = "fast",
+    fps: float | None = None,
+) -> Iterator[np.ndarray]:
+    """The input frames with the motion rendered over them from the input camera.
+
+    Args:
+      model: the character the motion was reconstructed with.
+      q: (T, nq) configurations for frames ``first_frame .. first_frame + T - 1`` of ``frames``;
+        the other frames pass through with only the time label.
+      frames: an iterable of (H, W, 3) uint8 RGB frames (consumed once: a video may be
+        streamed), H and W the camera's image size.
+      camera: the unbatched :class:`jmocap.camera.Camera` of the frames (its intrinsics, image
+        size and extrinsics).
+      keypoints2d: optional (T, J, 3) 2D keypoints of the same frames (pixels, confidence; 0 =
+        missing), drawn with their bones (``layout``, or J = 25: BODY_25).
+      alpha: opacity of the humanoid over the frame.
+
+    The humanoid is rendered by MuJoCo offscreen through the exact pinhole camera (as the
+    ``camera`` view of :func:`render_frames`), without the floor; a segmentation render of the
+    same scene is the mask where it is blended over the frame. Yields (H, W, 3) uint8 frames.
+    """
+    where = "overlay_frames"
+    q = check_q(model, q, f"{where}: field 'q'")
+    T = len(q)
+    if quality not in ("fast", "high"):
+        raise ValueError(f"{where}: quality must be 'fast' or 'high', got {quality!r}")
+    if not 0.0 <= float(alpha) <= 1.0:
+        raise ValueError(f"{where}: alpha must be in [0, 1], got {alpha}")
+    intr = np.asarray(camera.intrinsics, np.float64)
+    isize = np.asarray(camera.image_size, np.float64)
+    extr = np.asarray(camera.extrinsics, np.float64)
+    if intr.shape != (4,) or isize.shape != (2,) or extr.shape != (4, 4):
+        raise ValueError(f"{where}: camera must be unbatched, got intrinsics {intr.shape}")
+    W, H = int(round(isize[0])), int(round(isize[1]))
+    _size((W, H), where)
+    kp = None
+    bones: list[tuple[int, int]] = []
+    if keypoints2d is not None:
+        kp = np.asarray(keypoints2d, np.float64)
+        if kp.ndim != 3 or kp.shape[0] != T or kp.shape[2] != 3:
+            raise ValueError(f"{where}: field 'keypoints2d' has shape {kp.shape}, expected (T={T}, J, 3)")
+        lay = get_layout(layout) if layout is not None else (get_layout("body25") if kp.shape[1] == 25 else None)
+        if lay is not None:
+            if lay.num_joints != kp.shape[1]:
+                raise ValueError(f"{where}: keypoints2d have {kp.shape[1]} joints, layout {lay.name!r} has {lay.num_joints}")
+            bones = _layout_bones(model, lay)
+    mj = copy.copy(model.mj)  # render settings go on a copy of the user's model
+    if quality == "fast":
+        mj.vis.quality.offsamples = 0
+    hidden = 5  # geom group of the floor (planes): not drawn
+    planes = np.nonzero(mj.geom_type == mujoco.mjtGeom.mjGEOM_PLANE)[0]
+    mj.geom_group[planes] = hidden
+    option = mujoco.MjvOption()
+    option.geomgroup[hidden] = 0
+    a = float(alpha)
+
+    def gen() -> Iterator[np.ndarray]:
+        renderer = None
+        d = mujoco.MjData(mj)
+        free_cam = mujoco.MjvCamera()
+        try:
+            for t, frame in enumerate(frames):
+                img = np.asarray(frame)
+                if img.shape != (H, W, 3):
+                    raise ValueError(f"{where}: frame {t} has shape {img.shape}, expected ({H}, {W}, 3)")
+                i = t - int(first_frame)
+                points = None
+                if 0 <= i < T:
+                    if renderer is None:
+                        renderer = open_renderer(mj, H, W)
+                    d.qpos[:] = q[i]
+                    mujoco.mj_kinematics(mj, d)
+                    mujoco.mj_camlight(mj, d)
+                    renderer.update_scene(d, camera=free_cam, scene_option=option)
+                    _set_pinhole(renderer.scene, intr, isize, extr, W, H)
+                    if quality == "fast":
+                        renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+                        renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+                    rgb = renderer.render()
+                    renderer.enable_segmentation_rendering()
+                    try:
+                        seg = renderer.render()
+                    finally:
+                        renderer.disable_segmentation_rendering()
+                    mask = (seg[..., 0] >= 0) & (seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM))
+                    w = (a * mask)[..., None]
+                    img = (img * (1.0 - w) + rgb * w).round().astype(np.uint8)
+                    if kp is not None:
+                        points = kp[i]
+                label = [f"frame {t}" + (f"  t {t / fps:.2f} s" if fps else "")]
+                yield _draw_overlay(np.ascontiguousarray(img), points, bones, label)
+        finally:
+            if renderer is not None:
+                renderer.close()
+
+    return gen()
+
+
+def render_overlay(path: str | os.PathLike, model: Model, q, frames, camera, fps: float, **kwargs) -> Path:
+    """Write :func:`overlay_frames` (same arguments) as an MP4 at ``fps``, atomically, streaming
+    the frames (memory: one frame). Returns the path."""
+    path = Path(path)
+    if path.suffix.lower() != ".mp4":
+        raise ValueError(f"render_overlay({path}): the overlay is written as .mp4")
+    fps = float(fps)
+    if not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"render_overlay({path}): fps must be positive, got {fps}")
+    it = overlay_frames(model, q, frames, camera, fps=fps, **kwargs)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        _write_mp4(tmp, it, fps)
+    return path
 
 
 # ======================================================================================
