@@ -33,7 +33,13 @@ FORBIDDEN = {
     "train": ("batch", "evaluate", "cli", "demo"),
     "score": ("methods", "pipeline", "batch", "evaluate", "train", "cli", "demo", "weights", "nets"),
     "export": ("methods", "pipeline", "batch", "evaluate", "metrics", "train", "cli", "demo", "weights", "nets"),
+    # video input: detection, tracking and clips on the data layer, overlays through viz; the
+    # reconstruction between them is the command line's (cli runs jmocap reconstruct's code)
+    "video": ("methods", "physics", "nets", "pipeline", "batch", "evaluate", "metrics", "train", "cli", "demo",
+              "weights", "losses"),
 }
+# video input sits with the commands: no other layer imports it (the command line does)
+FORBIDDEN = {layer: rules + ("video",) if layer != "video" else rules for layer, rules in FORBIDDEN.items()}
 
 
 def _module_name(path: Path) -> str:
