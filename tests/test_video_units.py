@@ -341,3 +341,32 @@ def test_track_options_are_checked():
         TrackOptions(min_presence=1.5)
     with pytest.raises(ValueError, match="max_gap"):
         TrackOptions(max_gap=-1)
+
+
+def test_people_crossing_one_track_absorbs_the_other_which_starts_again():
+    """Two people walk through each other: while they overlap, both tracks find the same person
+    (the front one); the younger track ends there, and the other person starts a new track
+    once the detector sees them apart again (a documented limit: identity is not kept through
+    an occlusion)."""
+    everyone = set(range(40))
+    est = Scripted([(walking(100.0, 10.0), everyone), (walking(500.0, -10.0), everyone)])
+    tracks, _ = track_people(range(40), est, TrackOptions(min_frames=5, detect_every=5))
+    assert [(t.start, t.end) for t in tracks] == [(0, 39), (0, 15), (30, 39)]
+    assert tracks[1].results[-1].points[33, 0] == pytest.approx(350.0)  # the second person, not the first
+    seen = {}
+    for k, tr in enumerate(tracks):  # never two tracks on one person in one frame
+        for t, r in zip(tr.frames, tr.results, strict=True):
+            key = (t, round(float(r.points[33, 0])))
+            assert key not in seen, (k, seen.get(key), t)
+            seen[key] = k
+
+
+def test_without_the_video_extra_the_command_says_how_to_install(monkeypatch, tmp_path, capsys):
+    from jmocap import cli, video
+
+    monkeypatch.setattr(video, "missing_video_packages", lambda: ["ai_edge_litert"])
+    assert cli.main(["video", str(tmp_path / "v.mp4"), str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "ai_edge_litert" in err and "pip install 'jmocap[video]'" in err
+    with pytest.raises(ImportError, match=r"pip install 'jmocap\[video\]'"):
+        bp._import("jmocap_no_such_module", "BlazePose")
