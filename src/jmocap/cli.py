@@ -720,10 +720,11 @@ def _video(p: argparse.ArgumentParser) -> None:
     p.add_argument("--height", type=_video_height_arg, default=None, metavar="M",
                    help="the subject's height in metres (written into the clip; default: estimated from the 2D "
                         "keypoints when the camera file has extrinsics, else the nominal 1.75 m character)")
-    p.add_argument("--fps", type=_positive_float, default=None, help="frame rate (default: the camera file's, else the video's)")
+    p.add_argument("--fps", type=_positive_float, default=None,
+                   help="frame rate (default: the camera file's, else the video's)")
     p.add_argument("--detect-every", type=_count_arg, default=15, metavar="N",
                    help="run the person detector every N frames to find new people (default 15; 0: only at the "
-                        "start and when a track is lost)")
+                        "start, while nobody is tracked and when a track is lost)")
     p.add_argument("--min-score", type=_unit_float, default=0.5, metavar="S",
                    help="detector score to accept a person (default 0.5, MediaPipe's)")
     p.add_argument("--min-presence", type=_unit_float, default=0.5, metavar="P",
