@@ -50,6 +50,7 @@ __all__ = [
     "LandmarkResult",
     "Roi",
     "affine_for_roi",
+    "apply_affine",
     "decode_detections",
     "iou",
     "refine_from_heatmap",
