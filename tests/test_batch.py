@@ -35,7 +35,7 @@ import pytest
 
 from jmocap import methods
 from jmocap import physics as P
-from jmocap.batch import BatchOptions, check_clip
+from jmocap.batch import BatchOptions, adapt_layout
 from jmocap.batch import reconstruct_archive as _reconstruct_archive
 from jmocap.camera import default_extrinsics
 from jmocap.constants import DEFAULT_HEIGHT_M
@@ -230,9 +230,9 @@ def test_scan_folder_names_and_skips(input_folder, tmp_path):
     assert {s.name for s in scan_folder(inner, exclude=inner / "out")} == GOOD | BAD
 
 
-def test_videopose3d_files_expand_and_layouts_are_checked(tmp_path):
-    """A VideoPose3D file is one clip per (subject, action, camera); its h36m17 keypoints do
-    not fit BODY_25 parameters, which the clip's failure says."""
+def test_videopose3d_files_expand_and_layouts_are_converted(tmp_path):
+    """A VideoPose3D file is one clip per (subject, action, camera); its h36m17 keypoints are
+    converted to the BODY_25 the parameters read, with a warning saying what is missing."""
     rng = np.random.default_rng(0)
     seqs = {"S1": {"Walking": [rng.uniform(100, 900, (12, 17, 2)) for _ in range(2)]}}
     write_videopose3d(tmp_path / "data_2d_h36m_test.npz", seqs)
@@ -240,8 +240,13 @@ def test_videopose3d_files_expand_and_layouts_are_checked(tmp_path):
     assert [s.name for s in sources] == ["data_2d_h36m_test/S1_Walking_0", "data_2d_h36m_test/S1_Walking_1"]
     clip = sources[1].load()
     assert clip.layout == "h36m17" and clip.num_frames == 12 and clip.fps == 50.0  # Human3.6M camera
-    with pytest.raises(FormatError, match=r"S1_Walking_1\]: field 'layout'.*'h36m17'.*'body25'"):
-        check_clip(clip, SMALL, sources[1].where)
+    conv, warnings = adapt_layout(clip, SMALL)
+    assert conv.layout == "body25" and conv.keypoints.shape == (12, 25, 3)
+    assert conv.meta["layout_conversion"]["from"] == "h36m17"
+    assert len(warnings) == 1 and "from h36m17 to body25" in warnings[0] and "absent: REye" in warnings[0]
+    np.testing.assert_array_equal(conv.keypoints[:, 8], clip.keypoints[:, 0])  # MidHip <- Hip
+    assert not conv.keypoints[:, 19:, 2].any()  # no feet
+    assert adapt_layout(conv, SMALL) == (conv, [])
 
 
 def test_image_size_is_assumed_only_when_missing(tmp_path, clips):

@@ -3,8 +3,9 @@
 Host-side orchestration around the compute core (:class:`jmocap.pipeline.Reconstructor`):
 
 * **inputs** (:func:`jmocap.data.sources.open_sources`): every clip of a clip archive or a
-  folder / ``.zip`` / ``.tar`` of loose files, read ahead on a thread and validated
-  (:func:`check_clip`);
+  folder / ``.zip`` / ``.tar`` of loose files, read ahead on a thread, converted to the layout
+  the parameters read (:func:`adapt_layout`: a COCO-17 or Human3.6M-17 clip reconstructs with
+  BODY_25 weights, its missing joints marked missing) and validated (:func:`check_clip`);
 * **batching**: clips with the same chunk plan are batched together, ``batch`` clips per device,
   so every call has one of a few shapes and each shape compiles once;
 * **outputs** (:class:`jmocap.results.ResultWriter`): one ``.npz`` per clip (schema
@@ -70,6 +71,19 @@ class Interrupted(BaseException):  # noqa: N818 - a signal, not an error (not ca
         self.signum = int(signum)
         self.exit_status = 128 + self.signum
         super().__init__(f"interrupted by {signal.Signals(self.signum).name}")
+
+
+def adapt_layout(clip: Clip, config) -> tuple[Clip, list[str]]:
+    """The clip in the layout the method's parameters read (``config.layout``): a clip in another
+    layout is converted (:meth:`jmocap.data.clip.Clip.to_layout`: joints matched by the
+    character's sites, midpoints derived, the rest missing), with a warning saying what was
+    derived, absent and not used. Returns the clip and the warnings."""
+    if clip.layout == config.layout:
+        return clip, []
+    converted = clip.to_layout(config.layout)
+    from jmocap.layouts import conversion
+
+    return converted, [conversion(clip.layout, config.layout).describe()]
 
 
 def check_clip(clip: Clip, config, where: str) -> list[str]:
@@ -227,6 +241,8 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
                     height_source=clip.meta.get("height_source"),
                 )
                 extra = {"height_source": clip.meta.get("height_source")}
+                if clip.meta.get("layout_conversion"):
+                    extra["layout_conversion"] = clip.meta["layout_conversion"]
                 if clip.meta.get("height_estimate"):
                     extra["height_estimate"] = clip.meta["height_estimate"]
                 if it.warnings:
@@ -388,8 +404,8 @@ def _read_ahead(sources: Sequence[Source], config, depth: int, options: BatchOpt
     def load(src: Source):
         t = time.perf_counter()
         try:
-            clip = resolve_subject(src.load(), options.height_m, options.mass_kg)
-            got = (clip, check_clip(clip, config, src.where))
+            clip, warnings = adapt_layout(resolve_subject(src.load(), options.height_m, options.mass_kg), config)
+            got = (clip, warnings + check_clip(clip, config, src.where))
         except Exception as e:  # noqa: BLE001 - recorded as the clip's failure (RecursionError too)
             got = e
         return got, time.perf_counter() - t
@@ -438,4 +454,4 @@ def _write_bvh(write_bvh, root: Path, name: str, model: Model, q: np.ndarray, fp
     return rel
 
 
-__all__ = ["BatchOptions", "Interrupted", "check_clip", "reconstruct_archive", "run_identity"]
+__all__ = ["BatchOptions", "Interrupted", "adapt_layout", "check_clip", "reconstruct_archive", "run_identity"]

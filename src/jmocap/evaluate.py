@@ -249,15 +249,10 @@ def evaluate(
     failures: list[dict[str, str]] = []
     usable = []
     for c in clips:
-        why = None
         if c.gt_q is None or c.gt_keypoints3d is None:
-            why = "no ground truth (gt_q, gt_keypoints3d)"
-        elif c.layout != base.get("layout", "body25"):
-            why = f"layout {c.layout!r}, the methods read {base.get('layout', 'body25')!r}"
-        if why:
-            failures.append({"method": "*", "clip": c.name, "error": why})
-        else:
-            usable.append(c)
+            failures.append({"method": "*", "clip": c.name, "error": "no ground truth (gt_q, gt_keypoints3d)"})
+        else:  # in the layout the methods read (jmocap.layouts.conversion; absent joints unscored)
+            usable.append(c.to_layout(base.get("layout", "body25")))
     if not usable:
         raise ValueError(f"{archive}: no clip with ground truth to evaluate")
     length = max(c.num_frames for c in usable)

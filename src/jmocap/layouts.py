@@ -162,3 +162,124 @@ def all_keypoint_sites() -> tuple[str, ...]:
     for layout in LAYOUTS.values():
         seen.update(dict.fromkeys(layout.sites))
     return tuple(seen)
+
+
+# ---------------------------------------------------------------------------------------
+# converting keypoints between layouts
+# ---------------------------------------------------------------------------------------
+
+#: Sites that are (nearly) the midpoint of two other sites on the character, so a layout
+#: without them can give them from its own joints: ``site: (site_a, site_b, exact)``.
+#: ``kp_mid_hip`` is exactly the midpoint of the hip centres (both on the pelvis,
+#: ``humanoid.xml``); ``kp_neck`` is the midpoint of the shoulder centres only with the collar
+#: joints at zero (shrugging moves the shoulders up to ~4 cm from it), so it is derived for the
+#: 2D input (where it is close to what a BODY_25 detector reports) but never for ground truth.
+MIDPOINT_SITES: dict[str, tuple[str, str, bool]] = {
+    "kp_mid_hip": ("kp_left_hip", "kp_right_hip", True),
+    "kp_neck": ("kp_left_shoulder", "kp_right_shoulder", False),
+}
+
+
+@dataclass(frozen=True)
+class Conversion:
+    """How the joints of layout ``dst`` are read from keypoints in layout ``src``.
+
+    Joints map by the character's site: a ``dst`` joint whose site a ``src`` joint has is copied
+    (``copied``); one whose site is the midpoint of two ``src`` sites (:data:`MIDPOINT_SITES`) is
+    their mean (``derived``); every other ``dst`` joint is absent (``absent``: confidence 0 in
+    2D, NaN in 3D). ``src`` joints with no place in ``dst`` are ``dropped``.
+    """
+
+    src: Layout
+    dst: Layout
+    index: tuple[int, ...]  # per dst joint: the src joint copied, or -1
+    derived: tuple[tuple[int, int, int, bool], ...]  # (dst joint, src a, src b, exact)
+
+    @property
+    def copied(self) -> tuple[str, ...]:
+        return tuple(self.dst.joints[j] for j, i in enumerate(self.index) if i >= 0)
+
+    @property
+    def derived_joints(self) -> tuple[str, ...]:
+        return tuple(self.dst.joints[j] for j, *_ in self.derived)
+
+    @property
+    def absent(self) -> tuple[str, ...]:
+        made = {j for j, *_ in self.derived}
+        return tuple(n for j, n in enumerate(self.dst.joints) if self.index[j] < 0 and j not in made)
+
+    @property
+    def dropped(self) -> tuple[str, ...]:
+        used = set(self.index) | {a for _, a, _, _ in self.derived} | {b for _, _, b, _ in self.derived}
+        return tuple(n for i, n in enumerate(self.src.joints) if i not in used)
+
+    @property
+    def identity(self) -> bool:
+        return self.index == tuple(range(self.src.num_joints)) and self.src.num_joints == self.dst.num_joints
+
+    def keypoints(self, keypoints):
+        """2D keypoints (..., J_src, 3) (x, y, confidence) -> (..., J_dst, 3) numpy float32.
+
+        Copied joints keep their values; a derived joint is the mean of its two source joints
+        where both are detected (confidence > 0), with the smaller of their confidences, else
+        missing; absent joints are (0, 0, 0)."""
+        import numpy as np
+
+        kp = np.asarray(keypoints, np.float32)
+        if kp.ndim < 2 or kp.shape[-2:] != (self.src.num_joints, 3):
+            raise ValueError(f"keypoints must be (..., {self.src.num_joints}, 3) for layout "
+                             f"{self.src.name!r}, got {kp.shape}")
+        out = np.zeros(kp.shape[:-2] + (self.dst.num_joints, 3), np.float32)
+        for j, i in enumerate(self.index):
+            if i >= 0:
+                out[..., j, :] = kp[..., i, :]
+        for j, a, b, _ in self.derived:
+            both = (kp[..., a, 2] > 0) & (kp[..., b, 2] > 0)
+            out[..., j, :2] = np.where(both[..., None], (kp[..., a, :2] + kp[..., b, :2]) / 2, 0.0)
+            out[..., j, 2] = np.where(both, np.minimum(kp[..., a, 2], kp[..., b, 2]), 0.0)
+        return out
+
+    def points3d(self, points):
+        """3D joints (..., J_src, 3) -> (..., J_dst, 3) numpy float32: copied joints, derived
+        joints whose midpoint is exact (:data:`MIDPOINT_SITES`), NaN for every other joint
+        (ground truth is never approximated)."""
+        import numpy as np
+
+        X = np.asarray(points, np.float32)
+        if X.ndim < 2 or X.shape[-2:] != (self.src.num_joints, 3):
+            raise ValueError(f"points must be (..., {self.src.num_joints}, 3) for layout "
+                             f"{self.src.name!r}, got {X.shape}")
+        out = np.full(X.shape[:-2] + (self.dst.num_joints, 3), np.nan, np.float32)
+        for j, i in enumerate(self.index):
+            if i >= 0:
+                out[..., j, :] = X[..., i, :]
+        for j, a, b, exact in self.derived:
+            if exact:
+                out[..., j, :] = (X[..., a, :] + X[..., b, :]) / 2
+        return out
+
+    def describe(self) -> str:
+        """One line for logs and result warnings."""
+        parts = [f"keypoints converted from {self.src.name} to {self.dst.name}"]
+        if self.derived:
+            parts.append(f"derived: {', '.join(self.derived_joints)} (midpoints)")
+        if self.absent:
+            parts.append(f"absent: {', '.join(self.absent)}")
+        if self.dropped:
+            parts.append(f"not used: {', '.join(self.dropped)}")
+        return "; ".join(parts)
+
+
+def conversion(src: str | Layout, dst: str | Layout) -> Conversion:
+    """The :class:`Conversion` from ``src`` to ``dst`` (any two layouts: joints are matched by the
+    character's sites)."""
+    src, dst = get_layout(src), get_layout(dst)
+    where = {s: i for i, s in enumerate(src.sites)}
+    index = tuple(where.get(s, -1) for s in dst.sites)
+    derived = []
+    for j, s in enumerate(dst.sites):
+        if index[j] < 0 and s in MIDPOINT_SITES:
+            a, b, exact = MIDPOINT_SITES[s]
+            if a in where and b in where:
+                derived.append((j, where[a], where[b], exact))
+    return Conversion(src, dst, index, tuple(derived))

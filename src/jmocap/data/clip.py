@@ -155,6 +155,25 @@ class Clip:
     def replace(self, **changes) -> Clip:
         return dataclasses.replace(self, **changes)
 
+    def to_layout(self, layout: str) -> Clip:
+        """This clip with its keypoints (and ``gt_keypoints3d``) in ``layout``
+        (:func:`jmocap.layouts.conversion`: joints matched by the character's sites, midpoints
+        derived, the rest missing: confidence 0 in 2D, NaN in 3D). ``meta["layout_conversion"]``
+        records the source layout and what was derived, absent and not used. The clip itself
+        when it is in ``layout`` already."""
+        from jmocap.layouts import conversion
+
+        conv = conversion(self.layout, layout)
+        if conv.src.name == conv.dst.name:
+            return self
+        meta = dict(self.meta)
+        meta["layout_conversion"] = {"from": conv.src.name, "to": conv.dst.name,
+                                     "derived": list(conv.derived_joints), "absent": list(conv.absent),
+                                     "not_used": list(conv.dropped)}
+        gt = None if self.gt_keypoints3d is None else conv.points3d(self.gt_keypoints3d)
+        return self.replace(layout=conv.dst.name, keypoints=conv.keypoints(self.keypoints), gt_keypoints3d=gt,
+                            meta=meta)
+
     def slice(self, start: int, stop: int | None = None) -> Clip:
         """Frames ``[start, stop)`` of every per-frame field."""
         changes = {

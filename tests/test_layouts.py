@@ -1,0 +1,126 @@
+"""Converting keypoints between layouts (``jmocap.layouts.conversion``, ``Clip.to_layout``).
+
+Reference: the character itself, by MuJoCo C -- the sites of every layout at random poses
+(``mj_kinematics``), projected through a camera by hand. A joint copied from another layout is
+the same site, so the same number; a derived midpoint is checked against the site it stands
+for (exact for MidHip, within the collar joints' reach for the Neck).
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from jmocap.data.clip import Clip
+from jmocap.layouts import LAYOUTS, MIDPOINT_SITES, conversion, get_layout
+from jmocap.model import load_model
+
+
+@pytest.fixture(scope="module")
+def sites_at_poses():
+    """World positions of every layout's joints at 20 random in-range poses (MuJoCo C)."""
+    model = load_model(with_mjx=False)
+    mj = model.mj
+    d = mujoco.MjData(mj)
+    rng = np.random.default_rng(0)
+    out = {name: [] for name in LAYOUTS}
+    for _ in range(20):
+        d.qpos[:] = mj.qpos0
+        lo, hi = mj.jnt_range[1:, 0], mj.jnt_range[1:, 1]
+        d.qpos[7:] = rng.uniform(lo, hi)
+        d.qpos[:3] = rng.uniform(-1, 1, 3) + [0, 0, 1]
+        mujoco.mj_kinematics(mj, d)
+        for name, lay in LAYOUTS.items():
+            ids = [mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, s) for s in lay.sites]
+            out[name].append(d.site_xpos[ids].copy())
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def _project(X):
+    """A pinhole camera 5 m in front (looking along +x of the world), by hand: (..., 3) -> (..., 2)."""
+    depth = 5.0 - X[..., 0]
+    return np.stack([500 + 1000 * X[..., 1] / depth, 500 - 1000 * (X[..., 2] - 1) / depth], -1)
+
+
+def test_midpoint_sites_are_what_they_say(sites_at_poses):
+    body = get_layout("body25")
+    X = sites_at_poses["body25"]
+    for site, (a, b, exact) in MIDPOINT_SITES.items():
+        j, ia, ib = body.sites.index(site), body.sites.index(a), body.sites.index(b)
+        err = np.linalg.norm(X[:, j] - (X[:, ia] + X[:, ib]) / 2, axis=-1)
+        if exact:
+            assert err.max() < 1e-9, site
+        else:  # the neck: within the collar joints' reach (elevation up to 45 deg of a 15 cm collar)
+            assert 1e-4 < err.max() < 0.12, (site, err.max())
+
+
+@pytest.mark.parametrize("src", ["coco17", "h36m17", "body25"])
+@pytest.mark.parametrize("dst", ["body25", "coco17", "h36m17"])
+def test_conversion_copies_sites_and_marks_the_rest_missing(src, dst, sites_at_poses):
+    conv = conversion(src, dst)
+    S, D = get_layout(src), get_layout(dst)
+    Xs, Xd = sites_at_poses[src], sites_at_poses[dst]
+    # 2D keypoints with confidences 0.3..1 (one joint undetected in every frame)
+    conf = np.linspace(0.3, 1.0, S.num_joints)
+    conf[0] = 0.0
+    kp = np.concatenate([_project(Xs), np.broadcast_to(conf, Xs.shape[:2])[..., None]], -1)
+    kp[:, 0, :2] = 0.0
+    out = conv.keypoints(kp)
+    assert out.shape == (len(kp), D.num_joints, 3) and out.dtype == np.float32
+    uv_true = _project(Xd)
+    names = set(conv.copied) | set(conv.derived_joints) | set(conv.absent)
+    assert names == set(D.joints) and len(conv.copied) + len(conv.derived_joints) + len(conv.absent) == D.num_joints
+    for j, name in enumerate(D.joints):
+        if name in conv.copied:
+            i = S.sites.index(D.sites[j])
+            if i == 0:  # the undetected source joint stays undetected
+                assert np.all(out[:, j] == 0)
+            else:
+                np.testing.assert_allclose(out[:, j, :2], uv_true[:, j], atol=1e-3)
+                np.testing.assert_allclose(out[:, j, 2], conf[i], rtol=1e-6)
+        elif name in conv.derived_joints:
+            a, b, exact = MIDPOINT_SITES[D.sites[j]]
+            ia, ib = S.sites.index(a), S.sites.index(b)
+            np.testing.assert_allclose(out[:, j, 2], min(conf[ia], conf[ib]), rtol=1e-6)
+            # the mean of the projections: the projected site within perspective's (and, for the
+            # neck, the collar's) difference
+            tol = 1.0 if exact else 30.0
+            assert np.abs(out[:, j, :2] - uv_true[:, j]).max() < tol, name
+        else:
+            assert np.all(out[:, j] == 0), name  # absent: missing
+    # 3D: copied exactly, exact midpoints derived, everything else NaN
+    X3 = conv.points3d(Xs)
+    for j, name in enumerate(D.joints):
+        exact_mid = name in conv.derived_joints and MIDPOINT_SITES[D.sites[j]][2]
+        if name in conv.copied or exact_mid:
+            np.testing.assert_allclose(X3[:, j], Xd[:, j], atol=1e-6)
+        else:
+            assert np.isnan(X3[:, j]).all(), name
+    if src == dst:
+        assert conv.identity and not conv.absent and not conv.dropped
+
+
+def test_coco_to_body25_says_what_it_did():
+    conv = conversion("coco17", "body25")
+    assert conv.derived_joints == ("Neck", "MidHip")
+    assert set(conv.absent) == {"LBigToe", "LSmallToe", "LHeel", "RBigToe", "RSmallToe", "RHeel"}
+    assert conv.dropped == ()
+    h = conversion("h36m17", "body25")
+    assert set(h.dropped) == {"Spine", "Thorax", "Head"}
+    assert "absent: REye, LEye, REar, LEar" in h.describe()
+    with pytest.raises(ValueError, match=r"\(\.\.\., 17, 3\) for layout 'coco17'"):
+        conv.keypoints(np.zeros((3, 25, 3)))
+
+
+def test_clip_to_layout(sites_at_poses):
+    X = sites_at_poses["coco17"]
+    kp = np.concatenate([_project(X), np.ones(X.shape[:2] + (1,))], -1)
+    clip = Clip(name="c", layout="coco17", fps=30.0, keypoints=kp, intrinsics=np.array([1000, 1000, 500, 500.0]),
+                image_size=np.array([1000, 1000]), gt_keypoints3d=X)
+    out = clip.to_layout("body25")
+    assert out.layout == "body25" and out.keypoints.shape == (20, 25, 3)
+    assert out.meta["layout_conversion"]["from"] == "coco17"
+    assert np.isnan(out.gt_keypoints3d[:, get_layout("body25").index("Neck")]).all()  # approximate: not ground truth
+    np.testing.assert_allclose(out.gt_keypoints3d[:, 8], sites_at_poses["body25"][:, 8], atol=1e-6)  # MidHip
+    assert clip.to_layout("coco17") is clip
