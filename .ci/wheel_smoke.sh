@@ -83,6 +83,11 @@ lean = [p for p in ("matplotlib", "imageio", "imageio_ffmpeg", "clarabel", "qpax
         if importlib.util.find_spec(p) is not None]
 if lean:
     sys.exit(f"wheel-smoke: FAILED: the core install pulled in {lean} (extras only)")
+models = [where.parent / "assets" / "blazepose" / f for f in ("pose_detection.tflite", "pose_landmark_full.tflite")]
+if not all(p.is_file() and p.stat().st_size > 1_000_000 for p in models):
+    sys.exit(f"wheel-smoke: FAILED: the wheel lacks the vendored BlazePose models of `jmocap video`: {models}")
+if importlib.util.find_spec("ai_edge_litert") is not None:
+    sys.exit("wheel-smoke: FAILED: the core install pulled in ai-edge-litert (the video extra only)")
 print(f"wheel-smoke: jmocap {jmocap.__version__} from {where.parent}; humanoid nq={m.nq} nv={m.nv}, "
       f"{m.total_mass:.1f} kg; core install without viz/test/bench packages")
 EOF
