@@ -22,7 +22,9 @@
    1e-4 added to the gradient (PyTorch's ``Adam(weight_decay=...)``, as in the paper), batch
    256; augmentation per sample: Gaussian noise sigma 0.005 on the normalised positions (A.2),
    random keypoint dropout (each joint-frame of the window dropped with a probability drawn
-   uniformly in [0, 0.1]) and a random global scale in [0.9, 1.1]. Early
+   uniformly in [0, 0.1]), a random global scale in [0.9, 1.1] and, for a share of the windows
+   (``--layout-drop``, 0.25), all six foot joints removed, as in a COCO-17 or Human3.6M-17 clip
+   converted to BODY_25 (those reconstruct with the same weights). Early
    stopping on the validation loss (patience ``--patience`` epochs); the best epoch's weights
    are kept. BatchNorm: batch statistics in training, the running averages (momentum 0.9) for
    validation and inference.
@@ -49,6 +51,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 HELDOUT_SEED = 123
+#: the BODY_25 joints that COCO-17 and Human3.6M-17 do not have (dropped together by --layout-drop)
+FEET = ("LBigToe", "LSmallToe", "LHeel", "RBigToe", "RSmallToe", "RHeel")
 BATCH = 256
 
 
@@ -149,7 +153,8 @@ def clip_arrays(clips, flip: bool = True, window: int = 9):
 # ---------------------------------------------------------------------------------------
 
 
-def make_steps(lr: float, weight_decay: float, noise: float, drop_max: float, scale_jitter: float):
+def make_steps(lr: float, weight_decay: float, noise: float, drop_max: float, scale_jitter: float,
+               layout_drop: float = 0.0):
     import jax
     import jax.numpy as jnp
     import optax
@@ -157,6 +162,7 @@ def make_steps(lr: float, weight_decay: float, noise: float, drop_max: float, sc
     from jmocap.methods import contact_estimation as ce
 
     tx = optax.chain(optax.add_decayed_weights(weight_decay), optax.adam(lr))
+    FOOT_MASK = jnp.array([j in FEET for j in ce.LOWER_BODY])
 
     def augment(x, key):
         k1, k2, k3, k4 = jax.random.split(key, 4)
@@ -167,6 +173,9 @@ def make_steps(lr: float, weight_decay: float, noise: float, drop_max: float, sc
         xy = f[..., :2] * scale + noise * jax.random.normal(k1, (*f.shape[:-1], 2))
         p = jax.random.uniform(k2, (B, 1, 1)) * drop_max
         keep = vis & (jax.random.uniform(k3, vis.shape) >= p)
+        # layouts without feet (COCO-17, Human3.6M-17 converted to BODY_25): no foot joint at all
+        no_feet = jax.random.uniform(jax.random.fold_in(k2, 1), (B, 1, 1)) < layout_drop
+        keep = keep & ~(no_feet & FOOT_MASK)
         out = jnp.concatenate([xy, f[..., 2:]], -1) * keep[..., None]
         return out.reshape(x.shape)
 
@@ -217,7 +226,7 @@ def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
     from jmocap.methods import contact_estimation as ce
 
     tx, train_step, eval_batch = make_steps(args.lr, args.weight_decay, args.noise, args.drop_max,
-                                            args.scale_jitter)
+                                            args.scale_jitter, args.layout_drop)
     variables = ce.init_contact_params(jax.random.PRNGKey(args.seed), tuple(args.widths), args.window)
     state = {
         "params": variables["params"], "batch_stats": variables["batch_stats"],
@@ -334,6 +343,9 @@ def main(argv=None) -> int:
     ap.add_argument("--noise", type=float, default=0.005)
     ap.add_argument("--drop-max", type=float, default=0.1)
     ap.add_argument("--scale-jitter", type=float, default=0.1)
+    ap.add_argument("--layout-drop", type=float, default=0.25,
+                    help="share of training windows whose six foot joints are all removed (clips in "
+                         "layouts without feet, e.g. COCO-17, reconstruct with these weights)")
     ap.add_argument("--max-epochs", type=int, default=60)
     ap.add_argument("--patience", type=int, default=6)
     ap.add_argument("--ship", action="store_true", help="copy the weights into the package (float16)")
@@ -379,7 +391,7 @@ def main(argv=None) -> int:
         "split": {"train_clips": [c.name for c in tr], "val_clips": [c.name for c in va]},
         "widths": list(ce.mlp_widths(best)),
         "window": ce.window_of(best),
-        "hyper": {k: getattr(args, k) for k in ("lr", "weight_decay", "noise", "drop_max", "scale_jitter",
+        "hyper": {k: getattr(args, k) for k in ("lr", "weight_decay", "noise", "drop_max", "scale_jitter", "layout_drop",
                                                 "patience", "max_epochs", "val_fraction")},
         "best_epoch": best_epoch, "epochs_run": epochs,
         "train_contact_rate": [round(float(r), 4) for r in rate],
@@ -387,6 +399,8 @@ def main(argv=None) -> int:
         "velocity_threshold": fit_velocity_threshold(tr),
         "val_voted": voted_f1(best, va),
         "val_voted_float16": voted_f1(half, va),
+        # the validation clips as a COCO-17 detector would give them (no feet), converted back
+        "val_voted_coco17": voted_f1(best, [c.to_layout("coco17").to_layout("body25") for c in va]),
         "seconds": {"generate": round(gen_s, 1), "features": round(feat_s, 1), "train": round(train_s, 1),
                     "total_this_call": round(time.time() - t_start, 1)},
     }

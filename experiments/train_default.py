@@ -2,9 +2,12 @@
 
     python experiments/train_default.py [--config experiments/configs/default.json] [--ship]
 
-1. Generates the training archives if missing (deterministic for their seeds):
-   data/train (300 kinematic clips, seed 1) and data/train_physics (40 clips tracked in
-   MuJoCo simulation, seed 2).
+1. Generates the training archive if missing or short (deterministic for its seed):
+   data/contacts_train, 1013 clips of 60-150 frames tracked in MuJoCo simulation (seed 7,
+   ``--physics --frames-per-clip 60:150``), the archive the contact estimator trains on
+   (``experiments/train_contacts.py`` uses its first 1000); the shipped weights of 2026-12-03
+   were trained on these 1013 (earlier weights: 300 kinematic clips of seed 1 and 40 physics
+   clips of seed 2).
 2. Runs the staged training of the config (resumable: re-running continues from
    runs/default/checkpoint.msgpack; progress in runs/default/log.jsonl).
 3. With --ship, writes the result to src/jmocap/assets/default_params.msgpack (float16) and
@@ -22,7 +25,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-ARCHIVES = (("data/train", 300, 1, []), ("data/train_physics", 40, 2, ["--physics"]))
+ARCHIVES = (("data/contacts_train", 1013, 7, ["--physics", "--frames-per-clip", "60:150"]),)
 
 
 def main(argv=None):

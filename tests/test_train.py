@@ -99,3 +99,31 @@ def test_stages_log_resume_and_overrides(xla_cache, archive, tmp_path):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
     log_b = [json.loads(line) for line in (tmp_path / "b" / "log.jsonl").read_text().splitlines()]
     assert [(r["stage"], r["step"]) for r in log_b] == [(r["stage"], r["step"]) for r in log]
+
+
+def test_layout_mix_gives_other_layouts_joints(archive, tmp_path):
+    """``layout_mix``: the shared windows look like a COCO-17 / Human3.6M-17 detector's output
+    converted to BODY_25 (no feet; the neck as the shoulders' midpoint; for H36M no eyes or ears),
+    the rest of the windows as they are; the ground truth is untouched."""
+    from jmocap.layouts import BODY25
+
+    feet = [BODY25.index(j) for j in ("LBigToe", "LSmallToe", "LHeel", "RBigToe", "RSmallToe", "RHeel")]
+    face = [BODY25.index(j) for j in ("REye", "LEye", "REar", "LEar")]
+    neck, ls, rs = BODY25.index("Neck"), BODY25.index("LShoulder"), BODY25.index("RShoulder")
+    plain = TrainingSet.load((str(archive),), _config(archive, tmp_path))
+    mixed = TrainingSet.load((str(archive),), dataclasses.replace(_config(archive, tmp_path),
+                                                                    layout_mix={"coco17": 0.4, "h36m17": 0.3}))
+    kinds = []
+    for seed in range(40):
+        _, a = plain.sample(np.random.default_rng(seed), 1, 4)
+        _, b = mixed.sample(np.random.default_rng(seed), 1, 4)
+        np.testing.assert_array_equal(a["gt_kp3d"], b["gt_kp3d"])
+        kp, ref = b["keypoints"][0], a["keypoints"][0]
+        if np.array_equal(kp, ref):
+            kinds.append("body25")
+            continue
+        assert not kp[:, feet].any()
+        both = (ref[:, ls, 2] > 0) & (ref[:, rs, 2] > 0)
+        np.testing.assert_allclose(kp[both, neck, :2], (ref[both, ls, :2] + ref[both, rs, :2]) / 2, rtol=1e-6)
+        kinds.append("h36m17" if not kp[:, face].any() else "coco17")
+    assert {"body25", "coco17", "h36m17"} <= set(kinds)

@@ -70,7 +70,10 @@ class TemporalConvNet(nn.Module):
             r = nn.Dropout(self.dropout, deterministic=not train)(nn.relu(bn()(r)))
             h = h + r
         h = nn.Conv(self.width, (W,), padding="VALID")(h)[..., 0, :]  # whole window -> one vector
-        return nn.Dense(self.out)(nn.relu(h))
+        # normalised before the last ReLU: the residual stream's scale grows with training, and
+        # without it the shipped joint-angle head of 2026-12-02 had every unit negative on every
+        # input (a dead ReLU layer: a constant pose, whatever the keypoints)
+        return nn.Dense(self.out)(nn.relu(bn()(h)))
 
 
 class TPNet(nn.Module):

@@ -88,6 +88,10 @@ class TrainConfig:
     truncate_gradient: bool = True
     # PhysCapConfig fields changed in the config shipped with the weights (inference only)
     ship_cycle: dict = field(default_factory=dict)
+    # share of training windows whose keypoints are given as another layout's joints would be
+    # (converted there and back, jmocap.layouts.conversion: e.g. no feet for coco17), so the
+    # weights reconstruct clips of those layouts: {"coco17": 0.15, "h36m17": 0.15}
+    layout_mix: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -123,6 +127,8 @@ class TrainingSet:
 
     clips: list[dict]
     models: list[Model]
+    layout: str = "body25"
+    layout_mix: tuple[tuple[str, float], ...] = ()
 
     @staticmethod
     def load(path: str | os.PathLike, config: TrainConfig) -> TrainingSet:
@@ -166,7 +172,7 @@ class TrainingSet:
                     gt_2d=clean.astype(np.float32),
                 )
             )
-        return TrainingSet(clips, models)
+        return TrainingSet(clips, models, layout.name, tuple(sorted(config.layout_mix.items())))
 
     def sample(self, rng: np.random.Generator, batch: int, frames: int):
         """A batch of random windows: (batched Model, dict of (B, frames, ...) arrays)."""
@@ -182,12 +188,28 @@ class TrainingSet:
                 pad = np.repeat(a[-1:], frames - L, 0)
                 item[k] = np.concatenate([a, pad])
             item["mask"] = np.arange(frames) < L
+            if self.layout_mix:
+                u, acc = rng.random(), 0.0
+                for other, share in self.layout_mix:
+                    acc += share
+                    if u < acc:
+                        item["keypoints"] = _as_layout(item["keypoints"], self.layout, other)
+                        break
             for k in ("intrinsics", "image_size", "extrinsics", "fps"):
                 item[k] = c[k]
             picks.append((c["model"], item))
         model = jax.tree.map(lambda *xs: np.stack(xs), *[self.models[m] for m, _ in picks])
         data = {k: np.stack([it[k] for _, it in picks]) for k in picks[0][1]}
         return model, data
+
+
+def _as_layout(keypoints: np.ndarray, layout: str, other: str) -> np.ndarray:
+    """Keypoints (T, J, 3) of ``layout`` as a detector of ``other`` would give them, back in
+    ``layout``: the joints ``other`` lacks missing, its midpoints derived
+    (:func:`jmocap.layouts.conversion` there and back)."""
+    from jmocap.layouts import conversion
+
+    return conversion(other, layout).keypoints(conversion(layout, other).keypoints(keypoints))
 
 
 # ---------------------------------------------------------------------------------------
