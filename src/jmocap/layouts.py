@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from jmocap.constants import CONTACT_SITES as _CONTACT_SITES
 
 
@@ -223,8 +225,6 @@ class Conversion:
         Copied joints keep their values; a derived joint is the mean of its two source joints
         where both are detected (confidence > 0), with the smaller of their confidences, else
         missing; absent joints are (0, 0, 0)."""
-        import numpy as np
-
         kp = np.asarray(keypoints, np.float32)
         if kp.ndim < 2 or kp.shape[-2:] != (self.src.num_joints, 3):
             raise ValueError(f"keypoints must be (..., {self.src.num_joints}, 3) for layout "
@@ -243,8 +243,6 @@ class Conversion:
         """3D joints (..., J_src, 3) -> (..., J_dst, 3) numpy float32: copied joints, derived
         joints whose midpoint is exact (:data:`MIDPOINT_SITES`), NaN for every other joint
         (ground truth is never approximated)."""
-        import numpy as np
-
         X = np.asarray(points, np.float32)
         if X.ndim < 2 or X.shape[-2:] != (self.src.num_joints, 3):
             raise ValueError(f"points must be (..., {self.src.num_joints}, 3) for layout "

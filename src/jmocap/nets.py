@@ -71,7 +71,7 @@ class TemporalConvNet(nn.Module):
             h = h + r
         h = nn.Conv(self.width, (W,), padding="VALID")(h)[..., 0, :]  # whole window -> one vector
         # normalised before the last ReLU: the residual stream's scale grows with training, and
-        # without it the shipped joint-angle head of 2026-12-02 had every unit negative on every
+        # without it the joint-angle head shipped until 2026-12-03 had every unit negative on every
         # input (a dead ReLU layer: a constant pose, whatever the keypoints)
         return nn.Dense(self.out)(nn.relu(bn()(h)))
 
