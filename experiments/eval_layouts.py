@@ -23,7 +23,7 @@ from pathlib import Path
 import jax
 
 from jmocap import evaluate as E
-from jmocap.layouts import conversion
+from jmocap.layouts import through_layout
 from jmocap.weights import default_config_fields, default_params
 
 LAYOUTS = ("body25", "coco17", "h36m17")
@@ -34,10 +34,7 @@ KEYS = (("mpjpe_mm", "MPJPE (mm)"), ("pa_mpjpe_mm", "PA-MPJPE (mm)"), ("root_err
 def as_layout(clip, layout: str):
     """The clip's BODY_25 keypoints as ``layout``'s detector would give them, back in BODY_25
     (the ground truth untouched)."""
-    if layout == clip.layout:
-        return clip
-    there, back = conversion(clip.layout, layout), conversion(layout, clip.layout)
-    return clip.replace(keypoints=back.keypoints(there.keypoints(clip.keypoints)))
+    return clip if layout == clip.layout else clip.replace(keypoints=through_layout(clip.keypoints, clip.layout, layout))
 
 
 def main(argv=None) -> int:

@@ -281,3 +281,10 @@ def conversion(src: str | Layout, dst: str | Layout) -> Conversion:
             if a in where and b in where:
                 derived.append((j, where[a], where[b], exact))
     return Conversion(src, dst, index, tuple(derived))
+
+
+def through_layout(keypoints, layout: str | Layout, other: str | Layout):
+    """2D keypoints (..., J, 3) of ``layout`` as a detector of ``other`` would give them, back in
+    ``layout``: the joints ``other`` lacks missing, its midpoints derived (:func:`conversion`
+    there and back; what ``jmocap reconstruct`` makes of an ``other`` clip). numpy float32."""
+    return conversion(other, layout).keypoints(conversion(layout, other).keypoints(keypoints))

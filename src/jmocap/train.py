@@ -39,7 +39,7 @@ from jmocap.camera import Camera, project
 from jmocap.constants import FLOOR_NORMAL, NUM_CONTACTS
 from jmocap.inputs import ClipInputs
 from jmocap.io import atomic_write
-from jmocap.layouts import get_layout
+from jmocap.layouts import get_layout, through_layout
 from jmocap.methods.physcap import CycleState, PhysCapConfig, init_params, simulate
 from jmocap.methods.stages import body_weight, contact_probability, pd_error, target_pose
 from jmocap.model import Model, character
@@ -193,7 +193,7 @@ class TrainingSet:
                 for other, share in self.layout_mix:
                     acc += share
                     if u < acc:
-                        item["keypoints"] = _as_layout(item["keypoints"], self.layout, other)
+                        item["keypoints"] = through_layout(item["keypoints"], self.layout, other)
                         break
             for k in ("intrinsics", "image_size", "extrinsics", "fps"):
                 item[k] = c[k]
@@ -201,15 +201,6 @@ class TrainingSet:
         model = jax.tree.map(lambda *xs: np.stack(xs), *[self.models[m] for m, _ in picks])
         data = {k: np.stack([it[k] for _, it in picks]) for k in picks[0][1]}
         return model, data
-
-
-def _as_layout(keypoints: np.ndarray, layout: str, other: str) -> np.ndarray:
-    """Keypoints (T, J, 3) of ``layout`` as a detector of ``other`` would give them, back in
-    ``layout``: the joints ``other`` lacks missing, its midpoints derived
-    (:func:`jmocap.layouts.conversion` there and back)."""
-    from jmocap.layouts import conversion
-
-    return conversion(other, layout).keypoints(conversion(layout, other).keypoints(keypoints))
 
 
 # ---------------------------------------------------------------------------------------
