@@ -42,7 +42,9 @@ The joint torques are then ``tau = M qdd + h - J_c^T lambda`` (:func:`jmocap.phy
 residual root wrench ``tau[:6]`` is what the optimisation could not remove.
 
 A first stage fits every frame on its own by Levenberg-Marquardt (:func:`per_frame_fit`:
-TPNet's pose is far from the evidence, and each frame's small system is solved exactly); the
+TPNet's pose is far from the evidence, and each frame's small system is solved exactly), each
+frame's root depth held towards the clip's depth track (:func:`depth_track`: frames with few
+keypoints left cannot fix their own depth); the
 whole-clip stages run L-BFGS (optax, zoom line search). Every stage has a fixed number of
 iterations, so the program is ``jax.jit``-ed once per length bucket; ``jax.vmap`` over clips runs their
 optimisations one after another in that program (:func:`fit_clip`); each clip's
@@ -101,6 +103,13 @@ class TrajOptConfig(KinematicConfig):
     pose_sigma_m: float = 0.1
     w_limits: float = 10.0
     limit_sigma_rad: float = 0.05
+    # the per-frame fit's prior on the root's camera depth (log depth) towards the clip's depth
+    # track (:func:`depth_track`); it only matters where the frame's own evidence is weak
+    w_depth: float = 1.0
+    depth_sigma: float = 0.15  # of log depth: 15 %
+    depth_model_sigma: float = 0.1  # TPNet's depth error on a fully seen frame (log depth)
+    depth_accel_sigma: float = 3.0  # the track's log-depth acceleration (1/s^2)
+    min_depth_m: float = 0.3  # a TPNet root nearer the camera than this is no depth evidence
     w_accel: float = 20.0  # 3D joint accelerations
     accel_sigma: float = 10.0  # m/s^2
     # --- contacts ---
@@ -237,6 +246,105 @@ def person_height_px_causal(keypoints: Array, mask: Array, frames: int) -> Array
 # ---------------------------------------------------------------------------------------
 # energies
 # ---------------------------------------------------------------------------------------
+
+
+def root_depth(q: Array, extrinsics: Array) -> Array:
+    """(T,) the root's depth in the camera frame (m): the third row of ``[R t] (x, 1)``."""
+    E = jnp.asarray(extrinsics, q.dtype)
+    return q[:, :3] @ E[2, :3] + E[2, 3]
+
+
+def to_depth(q: Array, extrinsics: Array, depth: Array) -> Array:
+    """Poses (T, nq) moved along the camera rays through their roots so that the roots' camera
+    depths are ``depth`` (T,): the root's image point stays; frames whose root is behind or at
+    the camera (no such ray) move straight along the optical axis instead."""
+    E = jnp.asarray(extrinsics, q.dtype)
+    R, t = E[:3, :3], E[:3, 3]
+    xc = q[:, :3] @ R.T + t
+    z = xc[:, 2:3]
+    ok = z > 1e-3
+    moved = jnp.where(ok, xc * depth[:, None] / jnp.where(ok, z, 1.0), xc.at[:, 2].set(depth))
+    return q.at[:, :3].set((moved - t) @ R)
+
+
+def _rts_smooth(y: Array, r: Array, accel: Array) -> Array:
+    """Rauch-Tung-Striebel smoother of a scalar series ``y`` (T,) measured with variances ``r``
+    (T,; ``inf`` where unmeasured) under a constant-velocity model whose acceleration is white
+    with standard deviation ``accel`` per frame^2: the minimiser of
+    ``sum_t (x_t - y_t)^2 / r_t + sum_t (x_{t+1} - 2 x_t + x_{t-1})^2 / accel^2`` (up to the
+    discretisation of the process noise), in O(T)."""
+    dtype = y.dtype
+    F = jnp.asarray([[1.0, 1.0], [0.0, 1.0]], dtype)
+    Q = accel**2 * jnp.asarray([[0.25, 0.5], [0.5, 1.0]], dtype)
+    seen = jnp.isfinite(r)
+    w = jnp.where(seen, 1.0 / jnp.where(seen, r, 1.0), 0.0)
+    x0 = jnp.stack([jnp.sum(w * jnp.where(seen, y, 0.0)) / jnp.maximum(jnp.sum(w), 1e-12), jnp.zeros((), dtype)])
+    P0 = jnp.diag(jnp.asarray([1e2, 1.0], dtype))
+
+    def forward(carry, obs):
+        x, P = carry
+        yt, rt, st = obs
+        x, P = F @ x, F @ P @ F.T + Q  # predict
+        k = P[:, 0] / (P[0, 0] + jnp.where(st, rt, 1.0))
+        x_u = x + k * (yt - x[0])
+        P_u = P - jnp.outer(k, P[0, :])
+        x, P = jnp.where(st, x_u, x), jnp.where(st, 0.5 * (P_u + P_u.T), P)
+        return (x, P), (x, P)
+
+    # the first frame's prediction from (x0, P0) is a broad prior, not a model step
+    (_, _), (xs, Ps) = jax.lax.scan(forward, (jnp.linalg.solve(F, x0), P0), (y, r, seen))
+
+    def backward(nxt, cur):
+        xn, Pn = nxt
+        x, P = cur
+        Pp = F @ P @ F.T + Q
+        C = P @ F.T @ _inv2(Pp)
+        xs_ = x + C @ (xn - F @ x)
+        Ps_ = P + C @ (Pn - Pp) @ C.T
+        return (xs_, Ps_), xs_[0]
+
+    _, smooth = jax.lax.scan(backward, (xs[-1], Ps[-1]), (xs[:-1], Ps[:-1]), reverse=True)
+    return jnp.concatenate([smooth, xs[-1:, 0]])
+
+
+def _inv2(A: Array) -> Array:
+    det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+    return jnp.stack([jnp.stack([A[1, 1], -A[0, 1]]), jnp.stack([-A[1, 0], A[0, 0]])]) / det
+
+
+def depth_track(q: Array, prob: Problem, config: TrajOptConfig, passes: int = 5) -> Array:
+    """(T,) the clip's root depth track, in log depth: the starting poses' root depths (TPNet's)
+    smoothed over time, each frame weighted by how much evidence it has.
+
+    One view fixes a person's depth only through the size of their image, and TPNet's
+    translation is a per-frame estimate: where most of the body has left the image it can put
+    the root anywhere, behind the camera included, and a per-frame fit of the few keypoints
+    left can too (a run towards the camera ended 0.1 m from it instead of 2 m). The track
+    carries the depth of the well-seen frames across those: each frame's log depth is measured
+    with variance ``depth_model_sigma^2 J / n`` (``n`` the confidence-weighted count of its
+    ``J`` keypoints) plus ``u^2 / S`` (``u`` 1 % of the person's image height, ``S`` the
+    confidence-weighted spread of the keypoints about their mean, pixels^2: the precision of a
+    scale measured from them), not at all where the root is nearer than ``min_depth_m`` or the
+    frame is padding, and smoothed by :func:`_rts_smooth` with ``depth_accel_sigma``; then
+    ``passes - 1`` times reweighted (Cauchy, at 2.5 standard deviations) so that frames far off
+    the track stop pulling it."""
+    z = root_depth(q, prob.extrinsics)
+    conf = prob.keypoints[..., 2] * prob.mask[:, None]
+    uv = prob.keypoints[..., :2]
+    n = jnp.sum(conf, -1)
+    mean = jnp.sum(conf[..., None] * uv, 1) / jnp.maximum(n, 1e-6)[:, None]
+    spread = jnp.sum(conf * jnp.sum((uv - mean[:, None]) ** 2, -1), -1)
+    J = conf.shape[-1]
+    var = config.depth_model_sigma**2 * (J / jnp.maximum(n, 1e-6)) ** 2 + prob.unit_px**2 / jnp.maximum(spread, 1e-6)
+    ok = prob.mask & (z > config.min_depth_m) & (n >= 1.0)
+    y = jnp.log(jnp.maximum(z, config.min_depth_m))
+    var = jnp.where(ok, var, jnp.inf)
+    accel = config.depth_accel_sigma / prob.fps**2
+    track = _rts_smooth(y, var, accel)
+    for _ in range(passes - 1):
+        e2 = (y - track) ** 2 / jnp.where(ok, var, 1.0)
+        track = _rts_smooth(y, var * (1.0 + e2 / 2.5**2) ** 2, accel)
+    return track
 
 
 def _frames_mean(x: Array, w: Array) -> Array:
@@ -518,12 +626,15 @@ def diagonal_scale(model: Model, x: Trajectory, prob: Problem, config: TrajOptCo
     return Trajectory(s[:, :3], s[:, 3:6], s[:, 6:])
 
 
-def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, config: TrajOptConfig):
+def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, config: TrajOptConfig,
+                     depth: Array | None = None):
     """One frame's residuals and their Jacobians with respect to a step ``dq`` (nv,) of the
     configuration (``q (+) dq``, :func:`jmocap.physics.integrate_positions`), from one
     forward-kinematics pass (the analytic point Jacobians): the projected joints (J, 2) in
     pixels with (J, 2, nv), and the weighted prior residuals (pose prior, joint limits, floor)
-    whose squares are their terms of the per-frame objective, with their Jacobian."""
+    whose squares are their terms of the per-frame objective, with their Jacobian. With
+    ``depth`` (the frame's log-depth target, :func:`depth_track`) the prior residuals end with
+    ``sqrt(w_depth) (log z - depth) / depth_sigma`` of the root's camera depth ``z``."""
     layout = get_layout(config.layout)
     roots = np.asarray(layout.root_indices)
     kin = P.forward_kinematics(model, q)
@@ -563,11 +674,19 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
         -a_lim * ((out_lo > 0).astype(q.dtype) + (out_hi > 0).astype(q.dtype))[:, None] * sel,
         -a_floor * (sole_h < config.floor_margin_m).astype(q.dtype)[:, None] * js[:, 2, :],
     ])
+    if depth is not None:
+        # the free joint's first three velocity coordinates move the root in the world frame
+        a_depth = jnp.sqrt(config.w_depth) / config.depth_sigma
+        z_root = q[:3] @ R[2] + t[2]
+        zc = jnp.maximum(z_root, 1e-2)
+        other = jnp.concatenate([other, a_depth * (jnp.log(zc) - depth)[None]])
+        row = jnp.zeros((1, model.nv), q.dtype).at[0, :3].set(a_depth * (z_root > 1e-2) * R[2] / zc)
+        j_other = jnp.concatenate([j_other, row])
     return uv, j_uv, other, j_other
 
 
 def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, iterations: int,
-                  gm_start, gm_end) -> Array:
+                  gm_start, gm_end, depth: Array | None = None) -> Array:
     """Every frame fitted on its own (no temporal or contact terms) by Levenberg-Marquardt on
     the configuration manifold (steps ``q (+) dq``, analytic Jacobians): the robust
     reprojection (Geman-McClure, iteratively reweighted, its scale annealed from ``gm_start``
@@ -581,26 +700,33 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
     Frames with too little evidence (fewer than ``config.min_keypoints`` confident keypoints,
     e.g. the person leaving the image) cannot be fitted on their own: they take the root
     position interpolated between, and the rest of the configuration of, the nearest frames
-    that have it (the temporal terms of the next stage then refine them). Returns (T, nq)."""
+    that have it (the temporal terms of the next stage then refine them).
+
+    ``depth`` (T,), a log-depth track of the root (:func:`depth_track`), starts every frame at
+    its track's depth (:func:`to_depth`) and adds a prior on each frame's root depth: a frame with a few keypoints left (the person leaving the image)
+    otherwise fits them as well anywhere along a range of depths, up to the camera itself.
+    Returns (T, nq)."""
     cam = Camera(prob.intrinsics, jnp.zeros(2, q.dtype), prob.extrinsics)
     conf = prob.keypoints[..., 2]
     target = prob.keypoints[..., :2]
+    if depth is not None:
+        q = to_depth(q, prob.extrinsics, jnp.exp(depth))
     units = jnp.broadcast_to(prob.unit_px, q.shape[:1])  # the clip's scale, or one per frame
 
-    def solve_frame(qt, prior, kp, cf, unit):
+    def solve_frame(qt, prior, kp, cf, unit, dz):
         def robust(uv, kp, cf, c):
             r2 = jnp.sum((uv - kp) ** 2, -1) / unit**2
             return config.w_reproj * jnp.sum(cf * geman_mcclure(r2, c)), r2
 
         def cost(qt, prior, kp, cf, c):
-            uv, _, other, _ = _frame_residuals(model, qt, prior, cam, config)
+            uv, _, other, _ = _frame_residuals(model, qt, prior, cam, config, dz)
             return robust(uv, kp, cf, c)[0] + jnp.sum(other**2)
 
         def step(k, s):
             qt, lam = s
             frac = k / jnp.maximum(iterations - 1, 1)
             c = gm_start * (gm_end / gm_start) ** frac
-            uv, j_uv, other, j_other = _frame_residuals(model, qt, prior, cam, config)
+            uv, j_uv, other, j_other = _frame_residuals(model, qt, prior, cam, config, dz)
             f_old, r2 = robust(uv, kp, cf, c)
             f_old = f_old + jnp.sum(other**2)
             w = jnp.sqrt(config.w_reproj * cf * (c * c / (c * c + r2)) ** 2)  # IRLS: sqrt(rho')
@@ -622,7 +748,8 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
         qt, _ = jax.lax.fori_loop(0, iterations, step, (qt, jnp.asarray(1e-3, qt.dtype)))
         return qt
 
-    fitted = jax.vmap(solve_frame)(q, prob.prior_rr, target, conf, units)
+    fitted = jax.vmap(solve_frame, in_axes=(0, 0, 0, 0, 0, None if depth is None else 0))(
+        q, prob.prior_rr, target, conf, units, depth)
     # frames without enough evidence: from their neighbours
     T = q.shape[0]
     t = jnp.arange(T)
@@ -702,7 +829,7 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     per_frame = config.replace(w_accel=0.0, w_contact_vel=0.0)
     f0 = lambda x, pr: objective(model, x, pr, per_frame, physics=False, heights=False)  # noqa: E731
     q1 = per_frame_fit(model, q_init, prob, per_frame, config.frame_iterations, config.gm_scale_initial,
-                       config.gm_scale)
+                       config.gm_scale, depth_track(q_init, prob, config))
     before = f0(x0, prob)
     x1, base = from_q(model, q1)
     prob = prob.replace(base_quat=base)
