@@ -333,12 +333,14 @@ def test_smooth_poses_against_numpy():
 
 def test_lookahead_and_history_follow_the_config():
     """``pip`` reads 6 frames ahead with the contact estimator (its 9-frame windows around the 5
-    frames each votes for), the smoothing radius with the smoothing, nothing for ``pip_tpnet``."""
+    frames each votes for), the smoothing radius with the smoothing (12 by default), nothing for
+    ``pip_tpnet``."""
     from jmocap import methods
 
     _, config = load_run_params(None, method="pip")
     m = methods.get_method("pip")
-    assert m.lookahead(config) == 6
+    assert m.lookahead(config) == 12
+    assert m.lookahead(config.replace(smoothing_radius=0)) == 6
     assert m.lookahead(config.replace(smoothing_radius=9)) == 9
     assert m.lookahead(config.replace(contact_source="tpnet", smoothing_radius=0)) == 0
     # "auto": the MLP reads BODY_25's heels and toes; other layouts use TPNet's contact head

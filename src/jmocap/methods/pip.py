@@ -76,9 +76,12 @@ class PIPConfig(KinematicConfig):
     fit_iterations: int = static(15)  # Levenberg-Marquardt iterations per frame ("fit"; 30 gave the same accuracy on the validation archive)
     # the reference's centred Gaussian smoothing: radius (frames each side; 0: none, causal) and
     # standard deviation (frames). The per-frame fit follows the keypoints' noise; tracked as it
-    # is, that noise becomes force noise (net GRF error 64 % BW instead of 28 on 12 held-out clips)
-    smoothing_radius: int = static(6)
-    smoothing_sigma: float = 3.0
+    # is, that noise becomes force noise (net GRF error 64 % BW instead of 28 on 12 held-out clips).
+    # sigma 6 frames (0.2 s at 30 fps) since the retrained TPNet, on the validation archive against
+    # sigma 3: residual 9.7 -> 7.7 % BW, cone violations 2.8 -> 0.9 %, GRF error 27 -> 23 % BW,
+    # at +2 mm MPJPE; sigma 8: MPJPE +4 mm, PA-MPJPE +4 mm for residual 7.0 (docs/evaluation.md)
+    smoothing_radius: int = static(12)
+    smoothing_sigma: float = 6.0
     # --- dual PD controller (PIP eqs. 3, 5; gains in 1/s^2 and 1/s) ---
     kp_rot: float = 1600.0  # PIP k_p_theta = 2400
     kd_rot: float = 80.0  # PIP k_d_theta = 60
