@@ -9,7 +9,10 @@
    were trained on these 1013 (earlier weights: 300 kinematic clips of seed 1 and 40 physics
    clips of seed 2).
 2. Runs the staged training of the config (resumable: re-running continues from
-   runs/default/checkpoint.msgpack; progress in runs/default/log.jsonl).
+   runs/default/checkpoint.msgpack; progress in runs/default/log.jsonl). The shipped weights of
+   2026-12-04 continued the first TPNet stage of a default.json run with
+   ``--config experiments/configs/tpnet_finetune.json`` (its ``init``: that run's
+   runs/default/params_tpnet.msgpack), i.e. default.json's later stages (docs/method.md).
 3. With --ship, writes the result to src/jmocap/assets/default_params.msgpack (float16) and
    the config next to it (the training PhysCapConfig with the config's ``ship_cycle`` changes),
    which `jmocap.weights.default_params()` loads.

@@ -127,3 +127,32 @@ def test_layout_mix_gives_other_layouts_joints(archive, tmp_path):
         np.testing.assert_allclose(kp[both, neck, :2], (ref[both, ls, :2] + ref[both, rs, :2]) / 2, rtol=1e-6)
         kinds.append("h36m17" if not kp[:, face].any() else "coco17")
     assert {"body25", "coco17", "h36m17"} <= set(kinds)
+
+
+def test_init_and_cosine_schedule(xla_cache, archive, tmp_path):
+    """``init`` starts a run from another run's networks (a fine-tuning run), a mismatched file is
+    refused with the network named; ``schedule="cosine"`` decays the stage's rate to 0 (optax's
+    schedule: lr at step 0, lr/2 half way, 0 at the end)."""
+    from jmocap.train import learning_rate
+
+    first = _config(archive, tmp_path / "first", stages=STAGES[:1])
+    data = TrainingSet.load(first.data, first)
+    trained = train(first, progress=False, data=data)
+    ft_stage = StageConfig("grfnet", 2, 1e-3, 2, 3, cycle={"use_dynet": False}, schedule="cosine")
+    ft = dataclasses.replace(_config(archive, tmp_path / "ft", stages=(ft_stage,)),
+                             init=str(tmp_path / "first" / "params.msgpack"))
+    tuned = train(ft, progress=False, data=data)
+    for a, b in zip(_leaves(trained["tpnet"]), _leaves(tuned["tpnet"]), strict=True):
+        np.testing.assert_array_equal(a, b)  # started from the first run's TPNet, left frozen
+    fresh = train(dataclasses.replace(ft, out=str(tmp_path / "fresh"), init=None), progress=False, data=data)
+    assert any(not np.array_equal(a, b) for a, b in zip(_leaves(fresh["tpnet"]), _leaves(tuned["tpnet"]), strict=True))
+
+    sched = learning_rate(StageConfig("tpnet", 100, 1e-3, 2, 4, schedule="cosine"))
+    np.testing.assert_allclose([float(sched(0)), float(sched(50)), float(sched(100))], [1e-3, 5e-4, 0.0], atol=1e-9)
+    with pytest.raises(ValueError, match="schedule"):
+        learning_rate(StageConfig("tpnet", 100, 1e-3, 2, 4, schedule="step"))
+
+    wide = dataclasses.replace(SMALL, nets=dataclasses.replace(SMALL.nets, tp_width=16))
+    with pytest.raises(ValueError, match="tpnet"):
+        train(dataclasses.replace(ft, out=str(tmp_path / "wide"), cycle=wide), progress=False,
+              data=TrainingSet.load(first.data, dataclasses.replace(first, cycle=wide)))

@@ -66,6 +66,9 @@ class StageConfig:
     # PhysCapConfig fields changed for this stage only (e.g. {"use_dynet": false}: train GRFNet
     # under the fixed-gain PD that the shipped config runs)
     cycle: dict = field(default_factory=dict)
+    # the learning rate over the stage: "constant" (lr throughout) or "cosine" (lr decayed to 0
+    # over the stage's steps by a half cosine: a fine-tuning stage after a constant one)
+    schedule: str = "constant"
 
 
 @dataclass(frozen=True)
@@ -92,6 +95,9 @@ class TrainConfig:
     # (converted there and back, jmocap.layouts.conversion: e.g. no feet for coco17), so the
     # weights reconstruct clips of those layouts: {"coco17": 0.15, "h36m17": 0.15}
     layout_mix: dict = field(default_factory=dict)
+    # a parameter file (msgpack, e.g. a previous run's params_tpnet.msgpack) whose networks
+    # replace the fresh initialisation of those networks when a run starts (not when it resumes)
+    init: str | None = None
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -304,12 +310,21 @@ def make_step(stage: StageConfig, config: PhysCapConfig, optimizer, truncate: bo
     return step
 
 
+def learning_rate(stage: StageConfig):
+    """The stage's learning rate: a constant or an optax schedule (by the stage's step count)."""
+    if stage.schedule == "constant":
+        return stage.lr
+    if stage.schedule == "cosine":
+        return optax.cosine_decay_schedule(stage.lr, max(stage.steps, 1))
+    raise ValueError(f"stage {stage.name!r}: unknown schedule {stage.schedule!r} (constant, cosine)")
+
+
 def make_optimizer(stage: StageConfig, params, clip: float):
     labels = {k: ("train" if k in STAGE_TRAINS[stage.name] else "freeze") for k in params}
     labels = {k: jax.tree.map(lambda _, v=v: v, params[k]) for k, v in labels.items()}
     return optax.multi_transform(
         {
-            "train": optax.chain(optax.clip_by_global_norm(clip), optax.adam(stage.lr)),
+            "train": optax.chain(optax.clip_by_global_norm(clip), optax.adam(learning_rate(stage))),
             "freeze": optax.set_to_zero(),
         },
         labels,
@@ -330,6 +345,20 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
     ckpt_path = out / "checkpoint.msgpack"
     key = jax.random.PRNGKey(config.seed)
     params = init_params(key, data.models[0], config.cycle)
+    if config.init is not None and not ckpt_path.exists():
+        start = serialization.msgpack_restore(Path(config.init).read_bytes())
+        unknown = set(start) - set(params)
+        if unknown:
+            raise ValueError(f"{config.init}: networks {sorted(unknown)} are not among {sorted(params)}")
+        for name, tree in start.items():
+            try:
+                new = serialization.from_state_dict(params[name], jax.tree.map(lambda x: np.asarray(x, np.float32), tree))
+                same = jax.tree.map(lambda a, b: np.shape(a) == np.shape(b), params[name], new)
+            except (ValueError, KeyError, TypeError) as e:
+                raise ValueError(f"{config.init}: network {name!r} does not match this config's: {e}") from e
+            if not all(jax.tree.leaves(same)):
+                raise ValueError(f"{config.init}: network {name!r} has other shapes than this config's")
+            params[name] = new
     state = {"stage": 0, "step": 0, "params": params, "opt_state": None, "key": np.asarray(key)}
     if ckpt_path.exists():
         restored = serialization.msgpack_restore(ckpt_path.read_bytes())
