@@ -270,9 +270,10 @@ def to_depth(q: Array, extrinsics: Array, depth: Array) -> Array:
 def _rts_smooth(y: Array, r: Array, accel: Array) -> Array:
     """Rauch-Tung-Striebel smoother of a scalar series ``y`` (T,) measured with variances ``r``
     (T,; ``inf`` where unmeasured) under a constant-velocity model whose acceleration is white
-    with standard deviation ``accel`` per frame^2: the minimiser of
-    ``sum_t (x_t - y_t)^2 / r_t + sum_t (x_{t+1} - 2 x_t + x_{t-1})^2 / accel^2`` (up to the
-    discretisation of the process noise), in O(T)."""
+    with standard deviation ``accel`` per frame^2 (``s_{t+1} = F s_t + (1/2, 1) a_t``), from a
+    broad prior on the first state: the posterior mean of the positions, which is the batch
+    least-squares solution of that model (tested), in O(T). A roughness penalty on the second
+    differences, in other words, with gaps bridged and the ends extrapolated linearly."""
     dtype = y.dtype
     F = jnp.asarray([[1.0, 1.0], [0.0, 1.0]], dtype)
     Q = accel**2 * jnp.asarray([[0.25, 0.5], [0.5, 1.0]], dtype)
@@ -321,13 +322,15 @@ def depth_track(q: Array, prob: Problem, config: TrajOptConfig, passes: int = 5)
     the root anywhere, behind the camera included, and a per-frame fit of the few keypoints
     left can too (a run towards the camera ended 0.1 m from it instead of 2 m). The track
     carries the depth of the well-seen frames across those: each frame's log depth is measured
-    with variance ``depth_model_sigma^2 J / n`` (``n`` the confidence-weighted count of its
-    ``J`` keypoints) plus ``u^2 / S`` (``u`` 1 % of the person's image height, ``S`` the
-    confidence-weighted spread of the keypoints about their mean, pixels^2: the precision of a
-    scale measured from them), not at all where the root is nearer than ``min_depth_m`` or the
-    frame is padding, and smoothed by :func:`_rts_smooth` with ``depth_accel_sigma``; then
-    ``passes - 1`` times reweighted (Cauchy, at 2.5 standard deviations) so that frames far off
-    the track stop pulling it."""
+    with variance ``depth_model_sigma^2 (J / n)^2`` (``n`` the confidence-weighted count of its
+    ``J`` keypoints: TPNet's depth degrades faster than the count as the body leaves the image)
+    plus ``u^2 / S`` (``u`` 1 % of the person's image height, ``S`` the confidence-weighted
+    spread of the keypoints about their mean, pixels^2: the precision of a scale measured from
+    them), not at all where the root is nearer than ``min_depth_m`` or the frame is padding, and
+    smoothed by :func:`_rts_smooth` with ``depth_accel_sigma``; then ``passes - 1`` times
+    reweighted (Geman-McClure weights at 2.5 standard deviations) so that frames far off the
+    track stop pulling it. A prior built from the data: no gradient flows through it."""
+    q, prob = jax.lax.stop_gradient((q, prob))
     z = root_depth(q, prob.extrinsics)
     conf = prob.keypoints[..., 2] * prob.mask[:, None]
     uv = prob.keypoints[..., :2]
@@ -344,7 +347,7 @@ def depth_track(q: Array, prob: Problem, config: TrajOptConfig, passes: int = 5)
     for _ in range(passes - 1):
         e2 = (y - track) ** 2 / jnp.where(ok, var, 1.0)
         track = _rts_smooth(y, var * (1.0 + e2 / 2.5**2) ** 2, accel)
-    return track
+    return jax.lax.stop_gradient(track)
 
 
 def _frames_mean(x: Array, w: Array) -> Array:
