@@ -74,6 +74,9 @@ class PIPConfig(KinematicConfig):
     # toes), "tpnet" (TPNet's contact head), or "auto": "mlp" where the layout is BODY_25, else "tpnet"
     contact_source: str = static("auto")
     fit_iterations: int = static(15)  # Levenberg-Marquardt iterations per frame ("fit"; 30 gave the same accuracy on the validation archive)
+    # the fit's pull towards TPNet's root-relative joints (trajopt's w_pose, 2 there). 1 since the
+    # fine-tuned TPNet, on data/val: MPJPE 91.4 -> 90.5 mm (0.5: 89.8, root +4 mm; 5: 93.1; 10: 95.3)
+    fit_w_pose: float = 1.0
     # the reference's centred Gaussian smoothing: radius (frames each side; 0: none, causal) and
     # standard deviation (frames). The per-frame fit follows the keypoints' noise; tracked as it
     # is, that noise becomes force noise (net GRF error 64 % BW instead of 28 on 12 held-out clips).
@@ -282,7 +285,8 @@ def reference_poses(model: Model, inputs: ClipInputs, tp, prob: Array, config: P
     if config.reference_source == "fit":
         from jmocap.methods import trajopt as TO
 
-        tcfg = TO.TrajOptConfig(layout=config.layout, nets=config.nets, w_accel=0.0, w_contact_vel=0.0)
+        tcfg = TO.TrajOptConfig(layout=config.layout, nets=config.nets, w_accel=0.0, w_contact_vel=0.0,
+                                w_pose=config.fit_w_pose)
         prob_t = TO.problem(model, inputs, tp.q_hat, prob, tcfg)
         # the image scale of the robust reprojection: per frame, over it and the 12 frames
         # before it (trajopt uses the whole clip's; a chunk must see what the whole clip sees)
