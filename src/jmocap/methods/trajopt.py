@@ -292,8 +292,9 @@ def _rts_smooth(y: Array, r: Array, accel: Array) -> Array:
         x, P = jnp.where(st, x_u, x), jnp.where(st, 0.5 * (P_u + P_u.T), P)
         return (x, P), (x, P)
 
-    # the first frame's prediction from (x0, P0) is a broad prior, not a model step
-    (_, _), (xs, Ps) = jax.lax.scan(forward, (jnp.linalg.solve(F, x0), P0), (y, r, seen))
+    # the first frame's prior is the prediction from (x0, P0): F x0 = x0 (its velocity is 0), and
+    # the covariance F P0 F^T + Q is broad
+    (_, _), (xs, Ps) = jax.lax.scan(forward, (x0, P0), (y, r, seen))
 
     def backward(nxt, cur):
         xn, Pn = nxt
