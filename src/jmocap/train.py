@@ -44,7 +44,7 @@ from jmocap.methods.physcap import CycleState, PhysCapConfig, init_params, simul
 from jmocap.methods.stages import body_weight, contact_probability, pd_error, target_pose
 from jmocap.model import Model, character
 from jmocap.physics.rotations import quat_to_mat
-from jmocap.weights import save_params
+from jmocap.weights import load_params, save_params
 
 NETS = ("tpnet", "dynet", "grfnet")
 STAGE_TRAINS = {
@@ -346,13 +346,13 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
     key = jax.random.PRNGKey(config.seed)
     params = init_params(key, data.models[0], config.cycle)
     if config.init is not None and not ckpt_path.exists():
-        start = serialization.msgpack_restore(Path(config.init).read_bytes())
+        start = load_params(config.init)
         unknown = set(start) - set(params)
         if unknown:
             raise ValueError(f"{config.init}: networks {sorted(unknown)} are not among {sorted(params)}")
         for name, tree in start.items():
             try:
-                new = serialization.from_state_dict(params[name], jax.tree.map(lambda x: np.asarray(x, np.float32), tree))
+                new = serialization.from_state_dict(params[name], tree)
                 same = jax.tree.map(lambda a, b: np.shape(a) == np.shape(b), params[name], new)
             except (ValueError, KeyError, TypeError) as e:
                 raise ValueError(f"{config.init}: network {name!r} does not match this config's: {e}") from e

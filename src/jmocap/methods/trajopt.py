@@ -300,18 +300,13 @@ def _rts_smooth(y: Array, r: Array, accel: Array) -> Array:
         xn, Pn = nxt
         x, P = cur
         Pp = F @ P @ F.T + Q
-        C = P @ F.T @ _inv2(Pp)
+        C = cho_solve(cholesky(Pp), F @ P).T  # P F^T Pp^-1 (P, Pp symmetric)
         xs_ = x + C @ (xn - F @ x)
         Ps_ = P + C @ (Pn - Pp) @ C.T
         return (xs_, Ps_), xs_[0]
 
     _, smooth = jax.lax.scan(backward, (xs[-1], Ps[-1]), (xs[:-1], Ps[:-1]), reverse=True)
     return jnp.concatenate([smooth, xs[-1:, 0]])
-
-
-def _inv2(A: Array) -> Array:
-    det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
-    return jnp.stack([jnp.stack([A[1, 1], -A[0, 1]]), jnp.stack([-A[1, 0], A[0, 0]])]) / det
 
 
 def depth_track(q: Array, prob: Problem, config: TrajOptConfig, passes: int = 5) -> Array:
@@ -348,7 +343,7 @@ def depth_track(q: Array, prob: Problem, config: TrajOptConfig, passes: int = 5)
     for _ in range(passes - 1):
         e2 = (y - track) ** 2 / jnp.where(ok, var, 1.0)
         track = _rts_smooth(y, var * (1.0 + e2 / 2.5**2) ** 2, accel)
-    return jax.lax.stop_gradient(track)
+    return track
 
 
 def _frames_mean(x: Array, w: Array) -> Array:
@@ -707,8 +702,9 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
     that have it (the temporal terms of the next stage then refine them).
 
     ``depth`` (T,), a log-depth track of the root (:func:`depth_track`), starts every frame at
-    its track's depth (:func:`to_depth`) and adds a prior on each frame's root depth: a frame with a few keypoints left (the person leaving the image)
-    otherwise fits them as well anywhere along a range of depths, up to the camera itself.
+    its track's depth (:func:`to_depth`) and adds a prior on each frame's root depth: a frame
+    with a few keypoints left (the person leaving the image) otherwise fits them as well
+    anywhere along a range of depths, up to the camera itself.
     Returns (T, nq)."""
     cam = Camera(prob.intrinsics, jnp.zeros(2, q.dtype), prob.extrinsics)
     conf = prob.keypoints[..., 2]
