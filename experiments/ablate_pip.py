@@ -43,7 +43,12 @@ def parse_set(items, config) -> dict:
         if k not in fields:
             raise SystemExit(f"unknown field {k!r}")
         cur = getattr(config, k)
-        out[k] = v if isinstance(cur, str) else (int(v) if isinstance(cur, int) and not isinstance(cur, bool) else float(v))
+        if isinstance(cur, str):
+            out[k] = v
+        elif isinstance(cur, bool):
+            out[k] = v.lower() in ("1", "true", "yes")
+        else:
+            out[k] = int(v) if isinstance(cur, int) else float(v)
     return out
 
 

@@ -19,6 +19,7 @@ from jmocap.camera import project
 from jmocap.data.clip import load_clip
 from jmocap.inputs import ClipInputs
 from jmocap.methods import get_method
+from jmocap.methods import stages as S
 from jmocap.methods import trajopt as TO
 from jmocap.model import character
 
@@ -178,6 +179,21 @@ def test_per_frame_jacobians_match_autodiff():
         auto_d = jax.jit(jax.jacfwd(lambda dq: TO._frame_residuals(
             model, P.integrate_positions(model, q, dq, 1.0), prior, cam, config, depth)[2][-1]))(jnp.zeros(model.nv))
         np.testing.assert_allclose(np.asarray(j_d[-1]), np.asarray(auto_d), atol=1e-12)
+        # the labelled sites' robust sole-height rows (left heel and right toe labelled; the root
+        # raised so that some labelled soles are above the floor, some below)
+        lab = jnp.asarray([1.0, 0.0, 0.0, 1.0])
+        q_c = q.at[2].add(0.07)
+        _, _, o_c, j_c = jax.jit(lambda q: TO._frame_residuals(model, q, prior, cam, config, contacts=lab))(q_c)
+        _, _, o_0, _ = jax.jit(lambda q: TO._frame_residuals(model, q, prior, cam, config))(q_c)
+        rows = o_c[o_0.shape[0]:]
+        assert rows.shape == (8,) and np.all(np.asarray(rows[2:6]) == 0) and np.any(np.asarray(rows) != 0)
+        h = S.sole_points(model, P.forward_kinematics(model, q_c))[2]
+        a, c = np.sqrt(config.w_contact_height) / config.contact_height_sigma, config.contact_robust_m
+        want = a * np.asarray(h) * c / np.sqrt(c * c + np.asarray(h) ** 2)  # sqrt of Geman-McClure
+        np.testing.assert_allclose(np.asarray(rows)[[0, 1, 6, 7]], want[[0, 1, 6, 7]], rtol=1e-9)
+        auto_c = jax.jit(jax.jacfwd(lambda dq: TO._frame_residuals(
+            model, P.integrate_positions(model, q_c, dq, 1.0), prior, cam, config, contacts=lab)[2]))(jnp.zeros(model.nv))
+        np.testing.assert_allclose(np.asarray(j_c), np.asarray(auto_c), atol=1e-9 * float(jnp.max(jnp.abs(auto_c))))
 
 
 def test_per_frame_fit_recovers_poses_from_their_projections():

@@ -77,6 +77,9 @@ class PIPConfig(KinematicConfig):
     # the fit's pull towards TPNet's root-relative joints (trajopt's w_pose, 2 there). 1 since the
     # fine-tuned TPNet, on data/val: MPJPE 91.4 -> 90.5 mm (0.5: 89.8, root +4 mm; 5: 93.1; 10: 95.3)
     fit_w_pose: float = 1.0
+    # the fit holds the feet labelled in contact on the floor (trajopt's frame_contacts): with
+    # the camera known, a foot on the floor fixes the frame's depth
+    fit_contacts: bool = static(False)
     # the reference's centred Gaussian smoothing: radius (frames each side; 0: none, causal) and
     # standard deviation (frames). The per-frame fit follows the keypoints' noise; tracked as it
     # is, that noise becomes force noise (net GRF error 64 % BW instead of 28 on 12 held-out clips).
@@ -292,7 +295,7 @@ def reference_poses(model: Model, inputs: ClipInputs, tp, prob: Array, config: P
         # before it (trajopt uses the whole clip's; a chunk must see what the whole clip sees)
         prob_t = prob_t.replace(unit_px=TO.person_height_px_causal(prob_t.keypoints, prob_t.mask, SCALE_FRAMES) / 100.0)
         return TO.per_frame_fit(model, tp.q_hat, prob_t, tcfg, config.fit_iterations, tcfg.gm_scale_initial,
-                                tcfg.gm_scale)
+                                tcfg.gm_scale, contacts=prob_t.contacts if config.fit_contacts else None)
     raise ValueError(f"unknown reference_source {config.reference_source!r} (tpnet, fit)")
 
 

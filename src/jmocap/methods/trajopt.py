@@ -44,7 +44,8 @@ residual root wrench ``tau[:6]`` is what the optimisation could not remove.
 A first stage fits every frame on its own by Levenberg-Marquardt (:func:`per_frame_fit`:
 TPNet's pose is far from the evidence, and each frame's small system is solved exactly), each
 frame's root depth held towards the clip's depth track (:func:`depth_track`: frames with few
-keypoints left cannot fix their own depth); the
+keypoints left cannot fix their own depth) and its labelled feet on the floor (with the camera
+known, a foot on the floor fixes the frame's depth); the
 whole-clip stages run L-BFGS (optax, zoom line search). Every stage has a fixed number of
 iterations, so the program is ``jax.jit``-ed once per length bucket; ``jax.vmap`` over clips runs their
 optimisations one after another in that program (:func:`fit_clip`); each clip's
@@ -118,6 +119,8 @@ class TrajOptConfig(KinematicConfig):
     contact_vel_sigma: float = 0.05  # m/s
     w_contact_height: float = 2.0  # labelled points' soles on the floor
     contact_height_sigma: float = 0.01  # m
+    frame_contacts: bool = static(True)  # labelled soles on the floor in the per-frame fit too
+    contact_robust_m: float = 0.05  # its Geman-McClure scale (a label the 2D holds higher: outlier)
     outlier_height_m: float = 0.1  # labels further from the floor after the first fit are dropped
     w_floor: float = 10.0  # every sole point above the floor
     floor_sigma: float = 0.005  # m
@@ -626,14 +629,16 @@ def diagonal_scale(model: Model, x: Trajectory, prob: Problem, config: TrajOptCo
 
 
 def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, config: TrajOptConfig,
-                     depth: Array | None = None):
+                     depth: Array | None = None, contacts: Array | None = None):
     """One frame's residuals and their Jacobians with respect to a step ``dq`` (nv,) of the
     configuration (``q (+) dq``, :func:`jmocap.physics.integrate_positions`), from one
     forward-kinematics pass (the analytic point Jacobians): the projected joints (J, 2) in
     pixels with (J, 2, nv), and the weighted prior residuals (pose prior, joint limits, floor)
     whose squares are their terms of the per-frame objective, with their Jacobian. With
     ``depth`` (the frame's log-depth target, :func:`depth_track`) the prior residuals end with
-    ``sqrt(w_depth) (log z - depth) / depth_sigma`` of the root's camera depth ``z``."""
+    ``sqrt(w_depth) (log z - depth) / depth_sigma`` of the root's camera depth ``z``. With
+    ``contacts`` (4,), the frame's contact labels, they end with the robust height residuals of
+    the labelled sites' sole points, :func:`robust_height`."""
     layout = get_layout(config.layout)
     roots = np.asarray(layout.root_indices)
     kin = P.forward_kinematics(model, q)
@@ -681,11 +686,28 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
         other = jnp.concatenate([other, a_depth * (jnp.log(zc) - depth)[None]])
         row = jnp.zeros((1, model.nv), q.dtype).at[0, :3].set(a_depth * (z_root > 1e-2) * R[2] / zc)
         j_other = jnp.concatenate([j_other, row])
+    if contacts is not None:
+        lab = jnp.repeat(contacts.astype(q.dtype), pts.shape[0] // contacts.shape[0])  # (8,)
+        rh, drh = robust_height(sole_h, config)
+        other = jnp.concatenate([other, lab * rh])
+        j_other = jnp.concatenate([j_other, (lab * drh)[:, None] * js[:, 2, :]])
     return uv, j_uv, other, j_other
 
 
+def robust_height(h: Array, config: TrajOptConfig) -> tuple[Array, Array]:
+    """The per-frame fit's residual of a labelled sole point at height ``h`` (m), and its
+    derivative: ``a c h / sqrt(c^2 + h^2)`` with ``a = sqrt(w_contact_height) /
+    contact_height_sigma`` and ``c = contact_robust_m``, whose square is the Geman-McClure cost
+    of ``a h`` (quadratic near the floor, bounded for a wrong label that the 2D evidence holds
+    in the air)."""
+    a = jnp.sqrt(config.w_contact_height) / config.contact_height_sigma
+    c = jnp.asarray(config.contact_robust_m, h.dtype)
+    den = jnp.sqrt(c * c + h * h)
+    return a * c * h / den, a * c**3 / den**3
+
+
 def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, iterations: int,
-                  gm_start, gm_end, depth: Array | None = None) -> Array:
+                  gm_start, gm_end, depth: Array | None = None, contacts: Array | None = None) -> Array:
     """Every frame fitted on its own (no temporal or contact terms) by Levenberg-Marquardt on
     the configuration manifold (steps ``q (+) dq``, analytic Jacobians): the robust
     reprojection (Geman-McClure, iteratively reweighted, its scale annealed from ``gm_start``
@@ -705,6 +727,11 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
     its track's depth (:func:`to_depth`) and adds a prior on each frame's root depth: a frame
     with a few keypoints left (the person leaving the image) otherwise fits them as well
     anywhere along a range of depths, up to the camera itself.
+
+    ``contacts`` (T, 4), contact labels, hold each labelled site's sole points on the floor
+    (:func:`robust_height`): with the camera known, a foot on the floor fixes the frame's depth,
+    which the body's image otherwise leaves to its pose (a limb turned towards the camera and a
+    body further away project alike).
     Returns (T, nq)."""
     cam = Camera(prob.intrinsics, jnp.zeros(2, q.dtype), prob.extrinsics)
     conf = prob.keypoints[..., 2]
@@ -713,20 +740,20 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
         q = to_depth(q, prob.extrinsics, jnp.exp(depth))
     units = jnp.broadcast_to(prob.unit_px, q.shape[:1])  # the clip's scale, or one per frame
 
-    def solve_frame(qt, prior, kp, cf, unit, dz):
+    def solve_frame(qt, prior, kp, cf, unit, dz, lab):
         def robust(uv, kp, cf, c):
             r2 = jnp.sum((uv - kp) ** 2, -1) / unit**2
             return config.w_reproj * jnp.sum(cf * geman_mcclure(r2, c)), r2
 
         def cost(qt, prior, kp, cf, c):
-            uv, _, other, _ = _frame_residuals(model, qt, prior, cam, config, dz)
+            uv, _, other, _ = _frame_residuals(model, qt, prior, cam, config, dz, lab)
             return robust(uv, kp, cf, c)[0] + jnp.sum(other**2)
 
         def step(k, s):
             qt, lam = s
             frac = k / jnp.maximum(iterations - 1, 1)
             c = gm_start * (gm_end / gm_start) ** frac
-            uv, j_uv, other, j_other = _frame_residuals(model, qt, prior, cam, config, dz)
+            uv, j_uv, other, j_other = _frame_residuals(model, qt, prior, cam, config, dz, lab)
             f_old, r2 = robust(uv, kp, cf, c)
             f_old = f_old + jnp.sum(other**2)
             w = jnp.sqrt(config.w_reproj * cf * (c * c / (c * c + r2)) ** 2)  # IRLS: sqrt(rho')
@@ -748,8 +775,9 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
         qt, _ = jax.lax.fori_loop(0, iterations, step, (qt, jnp.asarray(1e-3, qt.dtype)))
         return qt
 
-    fitted = jax.vmap(solve_frame, in_axes=(0, 0, 0, 0, 0, None if depth is None else 0))(
-        q, prob.prior_rr, target, conf, units, depth)
+    fitted = jax.vmap(solve_frame, in_axes=(0, 0, 0, 0, 0, None if depth is None else 0,
+                                            None if contacts is None else 0))(
+        q, prob.prior_rr, target, conf, units, depth, contacts)
     # frames without enough evidence: from their neighbours
     T = q.shape[0]
     t = jnp.arange(T)
@@ -829,7 +857,8 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     per_frame = config.replace(w_accel=0.0, w_contact_vel=0.0)
     f0 = lambda x, pr: objective(model, x, pr, per_frame, physics=False, heights=False)  # noqa: E731
     q1 = per_frame_fit(model, q_init, prob, per_frame, config.frame_iterations, config.gm_scale_initial,
-                       config.gm_scale, depth_track(q_init, prob, config))
+                       config.gm_scale, depth_track(q_init, prob, config),
+                       prob.contacts if config.frame_contacts else None)
     before = f0(x0, prob)
     x1, base = from_q(model, q1)
     prob = prob.replace(base_quat=base)
