@@ -32,7 +32,8 @@ Per frame, ``iterations`` steps of ``dt = 1 / (fps iterations)``, each:
 The root therefore moves only by gravity, the contact forces and a heavily penalised residual
 root wrench; the joint torques are ``M qdd + h - J_c^T lambda``. ``lax.scan`` over frames,
 chunked with the state carried like ``physcap``. Frame t depends on frames <= t + ``lookahead``
-(6 frames, 0.2 s at 30 fps, with the defaults; 0 for ``pip_tpnet``, which is causal).
+(12 frames, 0.4 s at 30 fps, with the defaults: the smoothing radius; 0 for ``pip_tpnet``, which
+is causal).
 """
 
 from __future__ import annotations
@@ -78,8 +79,9 @@ class PIPConfig(KinematicConfig):
     # fine-tuned TPNet, on data/val: MPJPE 91.4 -> 90.5 mm (0.5: 89.8, root +4 mm; 5: 93.1; 10: 95.3)
     fit_w_pose: float = 1.0
     # the fit holds the feet labelled in contact on the floor (trajopt's frame_contacts): with
-    # the camera known, a foot on the floor fixes the frame's depth
-    fit_contacts: bool = static(False)
+    # the camera known, a foot on the floor fixes the frame's depth. On data/val: MPJPE 90.5 ->
+    # 89.2 mm, root 181 -> 170 mm, residual 7.2 -> 6.9 % BW, GRF error 22.3 -> 21.9 % BW
+    fit_contacts: bool = static(True)
     # the reference's centred Gaussian smoothing: radius (frames each side; 0: none, causal) and
     # standard deviation (frames). The per-frame fit follows the keypoints' noise; tracked as it
     # is, that noise becomes force noise (net GRF error 64 % BW instead of 28 on 12 held-out clips).
