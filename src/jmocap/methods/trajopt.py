@@ -121,7 +121,10 @@ class TrajOptConfig(KinematicConfig):
     contact_height_sigma: float = 0.01  # m
     frame_contacts: bool = static(True)  # labelled soles on the floor in the per-frame fit too
     contact_robust_m: float = 0.05  # its Geman-McClure scale (a label the 2D holds higher: outlier)
-    outlier_height_m: float = 0.1  # labels further from the floor after the first fit are dropped
+    # labels further from the floor after the first fit are dropped: that fit holds labelled feet
+    # on the floor with a robust scale of contact_robust_m, so a labelled foot the 2D evidence
+    # still holds this high is a wrong label (0.1 before the per-frame contact rows)
+    outlier_height_m: float = 0.05
     w_floor: float = 10.0  # every sole point above the floor
     floor_sigma: float = 0.005  # m
     floor_margin_m: float = 0.005  # the floor term acts below this height: the trade-off against
