@@ -176,6 +176,27 @@ def test_reprojection_in_input_and_virtual_side_view():
     close(s, 50.0)
 
 
+def test_side_view_scores_only_joints_in_front_of_the_side_camera():
+    """``evaluate_arrays``' side view leaves out ground-truth joints nearer than SIDE_VIEW_NEAR_M to
+    the side camera (a subject who walks past it): worked by hand on 2 frames of 2 joints."""
+    cam = Camera.from_intrinsics(1000.0, 1000.0, 640.0, 360.0, 1280, 720, default_extrinsics(1.0, 4.0),
+                                 dtype=jnp.float32)
+    # the mean root (joint 0) is (2, 0, 1): the input camera's centre (0, -4), 4.5 m from it, turns
+    # +90 deg about it to (6, -2): the side camera looks along -x, a point's depth is 6 - x.
+    # Frame 1's joint 1 is at x = 5.8, 0.2 m in front of it: left out. Joint 0 of both frames is
+    # 4 m deep; the prediction moves it 0.4 m along y: 100 px. Frame 0's joint 1 (x = 4, 2 m
+    # deep) is moved 0.1 m along y: 50 px. The mean is (100 + 50 + 100) / 3.
+    gt = np.array([[[2.0, 0, 1.0], [4.0, 0, 1.0]], [[2.0, 0, 1.0], [5.8, 0, 1.0]]], np.float32)
+    pred = gt.copy()
+    pred[:, 0, 1] += 0.4
+    pred[0, 1, 1] += 0.1
+    pred[1, 1, 1] += 0.1
+    side = M.side_view_camera(cam, gt[0, 0])
+    np.testing.assert_allclose(np.asarray(side.position), [6.0, -2.0, 1.0], atol=1e-5)
+    out = M.evaluate_arrays({"keypoints3d": pred}, {"keypoints3d": gt}, fps=30.0, camera=cam, root=(0,))
+    close(out["reproj_side_px"], 250.0 / 3)
+
+
 # ---------------------------------------------------------------------------------------
 # foot-floor contact
 # ---------------------------------------------------------------------------------------
