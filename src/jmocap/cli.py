@@ -117,7 +117,11 @@ def _data(p: argparse.ArgumentParser) -> None:
     s.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
     s.add_argument("--kinds", type=_kinds_arg, default=None, metavar="K1,K2",
                    help="motion kinds to draw from (default: all)")
-    s.add_argument("--no-corruption", action="store_true", help="exact 2D projections, confidence 1")
+    s.add_argument("--no-corruption", action="store_true",
+                   help="exact 2D projections, confidence 1 (with --imu: exact IMU signals)")
+    s.add_argument("--imu", action="store_true",
+                   help="write IMU clips (jmocap-imu-clip-1: six sensors on forearms, lower legs, head and "
+                        "pelvis, with the same ground truth) instead of 2D keypoint clips")
     s.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_data_synth)
@@ -130,9 +134,12 @@ def _data(p: argparse.ArgumentParser) -> None:
 def _synth_one(job):
     """Worker: (seed, index, config) -> (index, clip | None, error | None)."""
     from jmocap.data.synthetic import GenerationError, generate_clip
+    from jmocap.data.synthetic.imu import IMUSynthConfig, generate_imu_clip
 
     seed, index, config = job
     try:
+        if isinstance(config, IMUSynthConfig):
+            return index, generate_imu_clip(seed, index, config), None
         return index, generate_clip(seed, index, config), None
     except GenerationError as e:
         return index, None, str(e)
@@ -155,7 +162,15 @@ def cmd_data_synth(args) -> int:
         kinds=args.kinds,
         corruption=Corruption.none() if args.no_corruption else Corruption(),
     )
-    settings = {"generator": "jmocap.data.synthetic", "seed": args.seed, "config": config.to_json()}
+    if args.imu:
+        import dataclasses
+
+        from jmocap.data.synthetic.imu import IMUCorruption, IMUSynthConfig
+
+        config = IMUSynthConfig(synth=dataclasses.replace(config, corruption=Corruption.none()),
+                                corruption=IMUCorruption.none() if args.no_corruption else IMUCorruption())
+    generator = "jmocap.data.synthetic.imu" if args.imu else "jmocap.data.synthetic"
+    settings = {"generator": generator, "seed": args.seed, "config": config.to_json()}
     t0 = time.perf_counter()
     written = failed = skipped = frames = 0
     with ArchiveWriter(args.out, settings) as writer:
@@ -192,6 +207,9 @@ def _consume(results, writer, bar, seed):
             bar.update(1)
             continue
         extra = {"index": index, "seed": seed, "physics": bool(clip.meta.get("physics_variant"))}
+        if "imu_generator" in clip.meta:
+            extra["imu"] = True
+            extra["filled_sensor_frames"] = int(clip.filled.sum()) if clip.filled is not None else 0
         phys = clip.meta.get("physics")
         if phys:
             extra["residual_force_mean"] = phys["residual_force_mean"]

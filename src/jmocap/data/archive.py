@@ -1,4 +1,5 @@
-"""Clip archives: a folder of ``jmocap-clip-1`` .npz files plus ``manifest.jsonl``.
+"""Clip archives: a folder of ``jmocap-clip-1`` (or ``jmocap-imu-clip-1``) .npz files plus
+``manifest.jsonl``.
 
 Layout of an archive folder::
 
@@ -11,8 +12,9 @@ Layout of an archive folder::
 Every manifest line has ``name``, ``file`` (relative to the folder), ``status`` (``"ok"`` or
 ``"failed"``) and, for written clips, ``frames``, ``fps``, ``layout``, ``kind`` (motion
 kind), ``height_m``, ``bytes`` and ``sha256`` (of the file), plus whatever the writer adds
-(``index``, ``seed``, ``error`` of a failed clip, ...). A later line for the same name
-supersedes an earlier one.
+(``index``, ``seed``, ``error`` of a failed clip, ...); IMU clips add ``format:
+"jmocap-imu-clip-1"`` and are read back as :class:`~jmocap.data.imu.IMUClip`. A later line for
+the same name supersedes an earlier one.
 
 Writing is crash-safe: each clip file is written to a temporary file in the folder and renamed
 into place (``os.replace``), then its manifest line is appended and flushed to disk. An
@@ -41,6 +43,8 @@ from typing import Any
 
 from jmocap.data import limits as L
 from jmocap.data.clip import Clip, ClipFormatError, FormatError, clip_from_arrays, clip_to_arrays
+from jmocap.data.imu import FORMAT as IMU_FORMAT
+from jmocap.data.imu import IMUClip, imu_clip_from_arrays, imu_clip_to_arrays
 from jmocap.io import atomic_write, npz_bytes
 
 MANIFEST = "manifest.jsonl"
@@ -151,14 +155,16 @@ class ArchiveWriter:
         os.fsync(self._f.fileno())
         self.entries[entry["name"]] = entry
 
-    def add(self, clip: Clip, **extra: Any) -> dict[str, Any]:
-        """Write ``clip`` (as ``<name>.npz``) and its manifest line; returns the line."""
-        if not isinstance(clip, Clip):
-            raise TypeError(f"ArchiveWriter.add expects a Clip, got {type(clip).__name__}")
+    def add(self, clip: Clip | IMUClip, **extra: Any) -> dict[str, Any]:
+        """Write ``clip`` (a :class:`Clip` or an :class:`~jmocap.data.imu.IMUClip`, as
+        ``<name>.npz``) and its manifest line; returns the line."""
+        if not isinstance(clip, (Clip, IMUClip)):
+            raise TypeError(f"ArchiveWriter.add expects a Clip or an IMUClip, got {type(clip).__name__}")
         fname = f"{clip.name}.npz"
         if "/" in clip.name or clip.name.startswith("."):
             raise ArchiveError(f"clip name {clip.name!r} cannot be a file name in the archive")
-        data = npz_bytes(clip_to_arrays(clip))
+        imu = isinstance(clip, IMUClip)
+        data = npz_bytes(imu_clip_to_arrays(clip) if imu else clip_to_arrays(clip))
         atomic_write(self.root / fname, data)
         entry = {
             "name": clip.name,
@@ -172,6 +178,8 @@ class ArchiveWriter:
             "bytes": len(data),
             "sha256": _sha256(data),
         }
+        if imu:
+            entry["format"] = IMU_FORMAT
         entry.update(extra)
         self._append(entry)
         return entry
@@ -375,6 +383,9 @@ class Archive:
             raise
         except Exception as e:  # noqa: BLE001 - BadZipFile, zlib.error, truncated members, ...
             raise ClipFormatError(f"{where}: not a readable .npz file ({_reason(e)})") from None
+        fmt = arrays.get("format")
+        if fmt is not None and fmt.shape == () and fmt.dtype.kind in "US" and str(fmt) == IMU_FORMAT:
+            return imu_clip_from_arrays(arrays, where)
         return clip_from_arrays(arrays, where)
 
     def __iter__(self) -> Iterator[Clip]:

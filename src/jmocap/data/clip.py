@@ -363,35 +363,51 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
         out["extrinsics"] = E
 
     # ground truth
+    out.update(validate_ground_truth(values, T, J, where))
+    return out
+
+
+def validate_ground_truth(values: dict[str, Any], T: int, J: int | None, where: str,
+                          error: type[FormatError] = ClipFormatError,
+                          frames_of: str = "keypoints") -> dict[str, np.ndarray]:
+    """The optional ground-truth fields of ``values`` (:data:`GT_FIELDS`) coerced to float32 and
+    validated; returns ``{field: array}`` for the fields present. Shared by every clip type that
+    carries ground truth (the video :class:`Clip`, :class:`jmocap.data.imu.IMUClip`): ``T`` is
+    the clip's frame count (read from its field ``frames_of``), ``J`` the joints of its layout
+    (None: the clip has no layout, and ``gt_keypoints3d`` is refused). Problems raise ``error``
+    naming ``where``, the field and, for values, the first bad frame."""
+    out: dict[str, np.ndarray] = {}
     nq = nv = None
     for key in GT_FIELDS:
         if values.get(key) is None:
             continue
         a = _as_array(values, key, np.float32, where)
         if a.ndim == 0 or a.shape[0] != T:
-            raise ClipFormatError(
-                f"{where}: field {key!r} has {a.shape[0] if a.ndim else 0} frames but 'keypoints' has {T} "
+            raise error(
+                f"{where}: field {key!r} has {a.shape[0] if a.ndim else 0} frames but '{frames_of}' has {T} "
                 f"(shape {a.shape})"
             )
         if key == "gt_q":
             if a.ndim != 2 or a.shape[1] < 7:
-                raise ClipFormatError(
+                raise error(
                     f"{where}: field 'gt_q' must have shape (T, nq >= 7), got {a.shape}"
                 )
             nq = a.shape[1]
         elif key in ("gt_qd", "gt_tau"):
             if a.ndim != 2 or a.shape[1] < 6:
-                raise ClipFormatError(
+                raise error(
                     f"{where}: field {key!r} must have shape (T, nv >= 6), got {a.shape}"
                 )
             if nv is not None and a.shape[1] != nv:
-                raise ClipFormatError(
+                raise error(
                     f"{where}: field {key!r} has nv = {a.shape[1]} but another field has nv = {nv}"
                 )
             nv = a.shape[1]
         elif key == "gt_keypoints3d":
+            if J is None:
+                raise error(f"{where}: field 'gt_keypoints3d' needs a keypoint layout (field 'layout')")
             if a.shape[1:] != (J, 3):
-                raise ClipFormatError(
+                raise error(
                     f"{where}: field 'gt_keypoints3d' must have shape (T, {J}, 3), got {a.shape}"
                 )
             # a joint the ground truth does not have (in a frame, or at all) is NaN in x, y, z:
@@ -400,7 +416,7 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
         elif key in _GT_SHAPES:
             if a.shape[1:] != _GT_SHAPES[key]:
                 shape = ", ".join(["T"] + [str(n) for n in _GT_SHAPES[key]])
-                raise ClipFormatError(
+                raise error(
                     f"{where}: field {key!r} must have shape ({shape}), got {a.shape}"
                 )
         if key != "gt_keypoints3d":
@@ -408,12 +424,12 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
         if key == "gt_contacts":
             bad = (a != 0) & (a != 1)
             if bad.any():
-                raise ClipFormatError(
+                raise error(
                     f"{where}: field 'gt_contacts' must be 0 or 1, first bad value at frame {_first_bad_frame(bad)}"
                 )
         out[key] = a
     if nq is not None and nv is not None and nv != nq - 1:
-        raise ClipFormatError(
+        raise error(
             f"{where}: 'gt_q' has nq = {nq} but velocities/forces have nv = {nv}; a free-root "
             f"model has nv = nq - 1"
         )
@@ -558,4 +574,5 @@ __all__ = [
     "is_clip_file",
     "load_clip",
     "save_clip",
+    "validate_ground_truth",
 ]

@@ -117,8 +117,18 @@ def archive_sources(archive: Archive, label: str) -> list[Source]:
     for e in archive.ok:
         rel = e.get("file")
         where = f"{label}:{rel}" if isinstance(rel, str) else f"{label}:{MANIFEST}[{e['name']!r}]"
-        out.append(Source(str(e["name"]), where, partial(archive.load, e["name"])))
+        out.append(Source(str(e["name"]), where, partial(_keypoint_clip, archive, e["name"], where)))
     return out
+
+
+def _keypoint_clip(archive: Archive, name: str, where: str) -> Clip:
+    """Clip ``name`` of ``archive``; an IMU clip (``jmocap-imu-clip-1``) is refused with a
+    :class:`FormatError` (the methods here read 2D keypoints)."""
+    clip = archive.load(name)
+    if not isinstance(clip, Clip):
+        raise FormatError(f"{where}: an IMU clip (jmocap-imu-clip-1); the reconstruction methods read "
+                          f"2D keypoint clips")
+    return clip
 
 
 def _has_manifest(path: Path) -> bool:

@@ -66,6 +66,15 @@ from jmocap.data.formats.camera_file import (
 )
 from jmocap.data.formats.coco import read_coco_json, write_coco_results
 from jmocap.data.formats.common import _READ_ERRORS, _ferr, _load_json, clean_keypoints, safe_name
+from jmocap.data.formats.imu_datasets import (
+    DATASET_FPS,
+    DIP_IMU_MASK,
+    DIP_IMU_SENSORS,
+    TOTALCAPTURE_DIP_MASK,
+    read_dip_imu,
+    read_imu,
+    read_totalcapture_dip,
+)
 from jmocap.data.formats.keypoints import DEFAULT_FPS, Keypoints2D, undistort_keypoints
 from jmocap.data.formats.mmpose import read_mmpose_json, write_mmpose_json
 from jmocap.data.formats.openpose import (
@@ -79,6 +88,7 @@ from jmocap.data.formats.safe_pickle import (
     MAX_PICKLE_DEPTH,
     RestrictedUnpickler,
     load_npz_pickled,
+    load_pickle_file,
     plain_data,
 )
 from jmocap.data.formats.videopose3d import (
@@ -230,8 +240,11 @@ __all__ = [
     "Candidate",
     "clean_keypoints",
     "CLIP_FORMAT",
+    "DATASET_FPS",
     "ClipFormatError",
     "DEFAULT_FPS",
+    "DIP_IMU_MASK",
+    "DIP_IMU_SENSORS",
     "distort_normalized",
     "find_sidecar",
     "FormatError",
@@ -241,6 +254,7 @@ __all__ = [
     "Joints3D",
     "Keypoints2D",
     "load_npz_pickled",
+    "load_pickle_file",
     "MAX_PICKLE_DEPTH",
     "OPENPOSE_FILE_RE",
     "OPENPOSE_VERSION",
@@ -249,10 +263,13 @@ __all__ = [
     "read_camera_json",
     "read_clip",
     "read_coco_json",
+    "read_dip_imu",
+    "read_imu",
     "read_keypoint_array",
     "read_keypoints",
     "read_mmpose_json",
     "read_openpose_folder",
+    "read_totalcapture_dip",
     "read_videopose3d",
     "RestrictedUnpickler",
     "rodrigues",
@@ -261,6 +278,7 @@ __all__ = [
     "SIDECAR_KEYS",
     "sidecar_path",
     "SMPL_JOINT_NAMES",
+    "TOTALCAPTURE_DIP_MASK",
     "undistort_keypoints",
     "undistort_points",
     "write_camera_json",

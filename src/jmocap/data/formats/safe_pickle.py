@@ -1,4 +1,5 @@
-"""Reading pickled ``.npz`` members without running anything: :func:`load_npz_pickled`.
+"""Reading pickled ``.npz`` members and plain pickle files without running anything:
+:func:`load_npz_pickled`, :func:`load_pickle_file`.
 
 Some formats (VideoPose3D's ``positions_2d``) are an ``.npz`` whose members are arrays of Python
 objects, which numpy stores pickled. ``np.load(..., allow_pickle=True)`` would run whatever
@@ -102,8 +103,17 @@ class _ArrayBuilder:
                 raise _Refused(f"structured dtype with objects {dtype}")
             if not isinstance(data, list) or len(data) != n:
                 raise _Refused("object array data is not a list of its size")
-        elif not isinstance(data, (bytes, bytearray)) or len(data) != n * dtype.itemsize:
-            raise _Refused(f"array data is not {n * dtype.itemsize} bytes")
+        else:
+            if isinstance(data, str):
+                # a Python 2 pickle's 8-bit string, decoded as latin-1 by the unpickler: its
+                # characters are the bytes (numpy's own __setstate__ accepts it the same way)
+                try:
+                    data = data.encode("latin-1")
+                except UnicodeEncodeError:
+                    raise _Refused("array data is a text string, not bytes") from None
+                state = state[:-1] + (data,)
+            if not isinstance(data, (bytes, bytearray)) or len(data) != n * dtype.itemsize:
+                raise _Refused(f"array data is not {n * dtype.itemsize} bytes")
         a = _NP_RECONSTRUCT(np.ndarray, (0,), b"b")
         a.__setstate__(state)
         self.array = a
@@ -329,9 +339,34 @@ def load_npz_pickled(
     return out
 
 
+def load_pickle_file(path: str | os.PathLike, where: str | None = None, field: str = "pickle") -> Any:
+    """The value of a plain pickle file (not an ``.npz``), read safely: the file's size is checked
+    (:func:`~jmocap.data.limits.check_file_size`), it is unpickled by :class:`RestrictedUnpickler`
+    (numpy arrays and scalars, dicts, lists, strings and numbers only; Python 2 pickles too, their
+    8-bit strings read as latin-1, as ``pickle.load(f, encoding="latin1")`` does) and checked by
+    :func:`plain_data`. Anything else is a :class:`FormatError` naming the file (and ``field``),
+    before any of it could run; an array over ``max_file_bytes`` a
+    :class:`~jmocap.data.limits.LimitError`. Used for DIP-IMU's per-sequence pickles."""
+    where = where or str(path)
+    check_file_size(path, where)
+    with open(Path(path), "rb") as f:
+        try:
+            top = RestrictedUnpickler(f, where, field).load()
+        except FormatError:
+            raise
+        except _TooBig as e:
+            raise LimitError(f"{where}: field {field!r}: {e}") from None
+        except _Refused as e:
+            raise FormatError(f"{where}: field {field!r}: refuses {e} {_REFUSAL}") from None
+        except Exception as e:  # truncated or malformed pickle
+            raise FormatError(f"{where}: not a readable pickle file ({' '.join(str(e).split())})") from None
+    return plain_data(top, where, field)
+
+
 __all__ = [
     "MAX_PICKLE_DEPTH",
     "RestrictedUnpickler",
     "load_npz_pickled",
+    "load_pickle_file",
     "plain_data",
 ]

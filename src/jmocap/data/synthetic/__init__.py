@@ -50,7 +50,10 @@ The package, one concern per module (each imports only the ones above it):
   :class:`CameraConfig`, :func:`sample_camera`; :class:`Corruption`,
   :func:`corrupt_keypoints`, :func:`clean_keypoints2d`;
 * :mod:`~jmocap.data.synthetic.clips` -- :class:`SynthConfig`, :func:`generate_clip`,
-  :func:`synthesize`.
+  :func:`synthesize`;
+* :mod:`~jmocap.data.synthetic.imu` -- six virtual IMUs on the same motion
+  (:func:`~jmocap.data.synthetic.imu.generate_imu_clip`, ``IMUSynthConfig``, ``IMUCorruption``;
+  imported from there, not re-exported here).
 """
 
 from __future__ import annotations

@@ -83,6 +83,13 @@ def generate_clip(seed: int, index: int = 0, config: SynthConfig = SynthConfig()
     requested length, optionally tracks it in simulation, samples a camera and projects and
     corrupts the 2D keypoints.
     """
+    return generate_clip_and_character(seed, index, config, name)[0]
+
+
+def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig = SynthConfig(),
+                                name: str | None = None):
+    """:func:`generate_clip` and the :class:`~jmocap.data.synthetic.character.Character` whose
+    model its ground truth ``gt_q`` is a motion of (the synthetic IMUs are computed on it)."""
     layout = get_layout(config.layout)
     kinds = tuple(config.kinds) if config.kinds else tuple(SEGMENTS)
     for k in kinds:
@@ -169,7 +176,7 @@ def generate_clip(seed: int, index: int = 0, config: SynthConfig = SynthConfig()
             height_m=round(ch.height, 6),
             mass_kg=round(ch.mass, 6),
             meta=meta,
-        )
+        ), ch
     raise GenerationError(f"clip {index} (seed {seed}): no valid motion in {config.max_attempts} "
                           f"attempts: " + "; ".join(errors[-3:]))
 
