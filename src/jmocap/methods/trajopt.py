@@ -711,7 +711,7 @@ def robust_height(h: Array, config: TrajOptConfig) -> tuple[Array, Array]:
 
 def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, iterations: int,
                   gm_start, gm_end, depth: Array | None = None, contacts: Array | None = None) -> Array:
-    """Every frame fitted on its own (no temporal or contact terms) by Levenberg-Marquardt on
+    """Every frame fitted on its own (no temporal terms) by Levenberg-Marquardt on
     the configuration manifold (steps ``q (+) dq``, analytic Jacobians): the robust
     reprojection (Geman-McClure, iteratively reweighted, its scale annealed from ``gm_start``
     to ``gm_end`` % of the person's image height over the iterations, a graduated
