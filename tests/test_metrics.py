@@ -110,6 +110,195 @@ def test_procrustes_reflected_pose_is_not_a_rotation():
 
 
 # ---------------------------------------------------------------------------------------
+# sparse-IMU metrics (PIP [002] Sec. 4, Fig. 3): orientations, root frame, travelled distance
+# ---------------------------------------------------------------------------------------
+
+
+def rot(axis: str, deg: float) -> np.ndarray:
+    """The rotation by ``deg`` degrees about the world axis ``axis`` ("x", "y" or "z")."""
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    i, j = {"x": (1, 2), "y": (2, 0), "z": (0, 1)}[axis]
+    R = np.eye(3)
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    return R.astype(np.float32)
+
+
+def test_sip_and_angular_error_by_hand():
+    T = 3
+    gt = np.tile(np.eye(3, dtype=np.float32), (T, 4, 1, 1))  # (T, 4, 3, 3)
+    # every body turned 90 deg about z in every frame -> 90
+    close(M.sip_error(np.tile(rot("z", 90), (T, 4, 1, 1)), gt), 90.0)
+    # four bodies at 30 (x), 60 (y), 90 (z), 0 deg -> (30 + 60 + 90 + 0) / 4 = 45
+    mix = np.stack([rot("x", 30), rot("y", 60), rot("z", 90), np.eye(3, dtype=np.float32)])
+    close(M.sip_error(np.tile(mix, (T, 1, 1, 1)), gt), 45.0)
+    # the angle is that of gt^T pred, whatever the truth: the same offsets on a rotated truth
+    base = rot("x", 25) @ rot("z", -70)
+    close(M.sip_error(np.tile(base @ mix, (T, 1, 1, 1)), np.tile(base, (T, 4, 1, 1))), 45.0)
+    # 179 deg: no loss near pi; 0.01 deg: none near 0 (arccos would give ~0.02 in float32)
+    close(M.sip_error(np.tile(rot("y", 179), (T, 4, 1, 1)), gt), 179.0)
+    close(M.sip_error(np.tile(rot("y", 0.01), (T, 4, 1, 1)), gt), 0.01, 1e-4)
+    # a prediction equal to the truth -> 0 (random rotations)
+    rng = np.random.default_rng(0)
+    Q, _ = np.linalg.qr(rng.normal(size=(T, 4, 3, 3)))
+    Q = (Q * np.sign(np.linalg.det(Q))[..., None, None]).astype(np.float32)
+    close(M.sip_error(Q, Q), 0.0)
+    # angular error: the same over any number of bodies; 6 bodies at 0, 0, 30, 60, 90, 0 -> 30
+    six = np.concatenate([np.tile(np.eye(3, dtype=np.float32), (2, 1, 1)), mix], 0)
+    close(M.angular_error(np.tile(six, (T, 1, 1, 1)), np.tile(np.eye(3, dtype=np.float32), (T, 6, 1, 1))), 30.0)
+    np.testing.assert_allclose(np.asarray(M.orientation_errors(mix[None], gt[:1]))[0], [30, 60, 90, 0], atol=1e-3)
+
+
+def test_sip_error_root_alignment_and_masks():
+    T = 4
+    gt_root = np.tile(rot("x", 10), (T, 1, 1))
+    gt = np.tile(np.stack([rot("x", 10) @ rot("y", a) for a in (0, 20, 40, 60)]), (T, 1, 1, 1))
+    # a global heading error of 40 deg about z turns the root and every body: global SIP = 40,
+    # root-aligned 0 (the offset cancels in R_root^T R_b)
+    off = rot("z", 40)
+    pred, pred_root = off @ gt, off @ gt_root
+    close(M.sip_error(pred, gt), 40.0)
+    close(M.sip_error(pred, gt, pred_root=pred_root, gt_root=gt_root), 0.0)
+    # ... and with a local error on top: body 2 bent 20 deg more about its root's z: in the root
+    # frame only that body errs, 20 / 4 = 5 deg
+    local = pred.copy()
+    local[:, 2] = pred_root @ rot("z", 20) @ np.swapaxes(pred_root, -1, -2) @ pred[:, 2]
+    close(M.sip_error(local, gt, pred_root=pred_root, gt_root=gt_root), 5.0)
+    # masks: frames 2, 3 missing (garbage there) -> frames 0, 1 only; per-body mask
+    bad = np.tile(rot("z", 90), (T, 4, 1, 1))
+    bad[2:] = np.nan
+    frames = np.array([True, True, False, False])
+    close(M.sip_error(bad, np.tile(np.eye(3, dtype=np.float32), (T, 4, 1, 1)), frames), 90.0)
+    bodies = np.ones((T, 4), bool)
+    bodies[:, 2] = False  # body 2 missing: (0 + 0 + 0) / 3 in the root frame
+    close(M.sip_error(local, gt, bodies, pred_root=pred_root, gt_root=gt_root), 0.0)
+    assert np.isnan(M.sip_error(local, gt, np.zeros(T, bool)))
+    # wrong shapes and arguments
+    with pytest.raises(ValueError, match=r"pred_rot must hold the 4 SIP_BODIES"):
+        M.sip_error(gt[:, :3], gt[:, :3])
+    with pytest.raises(ValueError, match=r"pred_rot must have shape \(\.\.\., T, B, 3, 3\), got \(4, 4, 3\)"):
+        M.angular_error(gt[..., 0], gt[..., 0])
+    with pytest.raises(ValueError, match="pred_rot and gt_rot must have the same shape"):
+        M.angular_error(gt[:, :2], gt)
+    with pytest.raises(ValueError, match="must be given together"):
+        M.sip_error(pred, gt, pred_root=pred_root)
+    with pytest.raises(ValueError, match=r"gt_root must have shape \(\.\.\., T, 3, 3\) = \(4, 3, 3\)"):
+        M.sip_error(pred, gt, pred_root=pred_root, gt_root=gt_root[:2])
+    with pytest.raises(ValueError, match="mask must have shape"):
+        M.sip_error(pred, gt, np.ones(3, bool))
+
+
+def test_body_rotations_of_the_character():
+    """Forward kinematics on the character: every body frame is the world's at the rest pose."""
+    import jmocap
+
+    model = jmocap.load_model(with_mjx=False)
+    q0 = np.asarray(model.qpos0, np.float32)
+    yaw = q0.copy()
+    yaw[3:7] = [np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)]  # root turned 90 deg about z
+    arm = q0.copy()
+    arm[model.mj.jnt_qposadr[model.mj.joint("left_shoulder_x").id]] = 0.5  # 0.5 rad at the shoulder
+    q = np.stack([q0, yaw, arm])  # (T = 3, nq)
+    R = np.asarray(M.body_rotations(model, q, M.SIP_BODIES))
+    assert R.shape == (3, 4, 3, 3)
+    np.testing.assert_allclose(R[0], np.tile(np.eye(3), (4, 1, 1)), atol=1e-6)
+    np.testing.assert_allclose(R[1], np.tile(rot("z", 90), (4, 1, 1)), atol=1e-6)
+    np.testing.assert_allclose(R[2, 2], rot("x", np.degrees(0.5)), atol=1e-6)  # left_shoulder
+    rest = np.asarray(M.body_rotations(model, np.stack([q0] * 3), M.SIP_BODIES))
+    # per frame: 0; 90 on all four; 0.5 rad = 28.6479 deg on one of four -> (0 + 90 + 7.16197) / 3
+    close(M.sip_error(R, rest), (90.0 + np.degrees(0.5) / 4) / 3)
+    root = np.asarray(M.body_rotations(model, q, ("pelvis",)))[:, 0]
+    root0 = np.asarray(M.body_rotations(model, np.stack([q0] * 3), ("pelvis",)))[:, 0]
+    close(M.sip_error(R, rest, pred_root=root, gt_root=root0), np.degrees(0.5) / 4 / 3)
+    every = M.body_rotations(model, q[None])  # leading batch dims, every body but the world
+    assert every.shape == (1, 3, model.topo.nbody - 1, 3, 3)
+    with pytest.raises(ValueError, match=rf"q must have shape \(\.\.\., T, {model.nq}\)"):
+        M.body_rotations(model, q[:, :-1])
+
+
+def test_mpjpe_root_frame_aligns_root_position_and_orientation():
+    # gt: root (joint 0) at the origin, joint 1 at (1, 0, 0), root orientation I
+    gt = np.array([[[0, 0, 0], [1, 0, 0]]], np.float32)
+    eye = np.eye(3, dtype=np.float32)[None]
+    # the estimate turned 90 deg about z with its root, and moved: the offset cancels
+    pred = np.array([[[5, 5, 0], [5, 6, 0]]], np.float32)
+    close(M.mpjpe_root_frame(pred, gt, rot("z", 90)[None], eye), 0.0)
+    # root position aligned only (TransPose's "positional error" as its paper words it: mpjpe):
+    # joint 1 (0, 1, 0) vs (1, 0, 0): sqrt(2) m, root 0 -> 707.107 mm
+    close(M.mpjpe(pred, gt), 707.1068)
+    # the same with a root orientation that does not explain the turn
+    close(M.mpjpe_root_frame(pred, gt, eye, eye), 707.1068)
+    # a real error in the root frame: joint 1 at 1.2 m along its root's y -> 0.2 m / 2 joints
+    pred2 = np.array([[[5, 5, 0], [5, 6.2, 0]]], np.float32)
+    close(M.mpjpe_root_frame(pred2, gt, rot("z", 90)[None], eye), 100.0)
+    # masks: a second frame with garbage, masked out
+    two = np.concatenate([pred2, np.full_like(pred2, 1e6)])
+    roots = np.concatenate([rot("z", 90)[None], eye])
+    close(M.mpjpe_root_frame(two, np.concatenate([gt, gt]), roots, np.concatenate([eye, eye]),
+                             np.array([True, False])), 100.0)
+    with pytest.raises(ValueError, match=r"pred_root must have shape \(\.\.\., T, 3, 3\) = \(1, 3, 3\)"):
+        M.mpjpe_root_frame(pred, gt, eye[0], eye)
+
+
+def walk(T: int, step: float, drift: float, still: int = 0):
+    """A straight walk along x, ``step`` m per frame after ``still`` standing frames; the estimate
+    drifts sideways by ``drift`` m every frame (also while standing)."""
+    t = np.arange(T)
+    gt = np.zeros((T, 3), np.float32)
+    gt[:, 0] = step * np.maximum(t - still, 0)
+    pred = gt.copy()
+    pred[:, 1] = drift * t
+    return pred, gt
+
+
+def test_cumulative_translation_error_on_a_straight_walk():
+    # 0.25 m per frame, sideways drift 0.025 m per frame: after d metres (4 d frames) the error is
+    # 0.1 d: 0.1, 0.2, 0.3 m at 1, 2, 3 m. The walk is 16 steps = 4 m: 5 m is never reached.
+    pred, gt = walk(17, 0.25, 0.025)
+    curve = np.asarray(M.cumulative_translation_error(pred, gt, distances=(1.0, 2.0, 3.0, 5.0)))
+    np.testing.assert_allclose(curve[:3], [0.1, 0.2, 0.3], atol=1e-5)
+    assert np.isnan(curve[3])
+    close(M.mean_translation_error(pred, gt, distances=(1.0, 2.0, 3.0, 5.0)), 0.2, 1e-5)  # (0.1+0.2+0.3)/3
+    # a global offset of the estimate cancels (each window's start is aligned)
+    close(M.cumulative_translation_error(pred + 7.0, gt, distances=(2.0,))[0], 0.2, 1e-5)
+    # 0.3 m steps overshoot 1 m (4 steps = 1.2 m, drift 0.12 m): rescaled to 1 m, 0.12 / 1.2 = 0.1
+    pred3, gt3 = walk(20, 0.3, 0.03)
+    np.testing.assert_allclose(np.asarray(M.cumulative_translation_error(pred3, gt3, distances=(1.0, 3.0))),
+                               [0.1, 0.3], atol=1e-5)
+    # a prediction equal to the truth -> 0
+    close(M.cumulative_translation_error(gt, gt, distances=(1.0,))[0], 0.0)
+
+
+def test_cumulative_translation_error_standstill_masks_and_shapes():
+    # standing for frames 0..2, then 0.25 m per frame to frame 10 (2 m); drift 0.025 m per frame.
+    # d = 1 m: starts 0, 1, 2 all end at frame 6 (s = 1.0), errors 0.025 * (6 - i) = 0.15, 0.125,
+    # 0.1; starts 3..6 end at 7..10, 0.1 each. PIP's rule keeps the first start of each end:
+    # (0.15 + 4 * 0.1) / 5 = 0.11; every start: (0.15 + 0.125 + 0.1 + 0.4) / 7 = 0.110714
+    pred, gt = walk(11, 0.25, 0.025, still=2)
+    close(M.cumulative_translation_error(pred, gt, distances=(1.0,))[0], 0.11, 1e-5)
+    close(M.cumulative_translation_error(pred, gt, distances=(1.0,), distinct_ends=False)[0], 0.110714, 1e-5)
+    # mask: frame 8 of the 4 m walk missing (garbage there): 1 m windows (4 frames) avoid it
+    # (starts 0..3 and 9..12, still 0.1); every 2 m and 3 m window (8, 12 frames) contains it -> NaN
+    pred, gt = walk(17, 0.25, 0.025)
+    pred[8] = 1e6
+    mask = np.arange(17) != 8
+    curve = np.asarray(M.cumulative_translation_error(pred, gt, mask, distances=(1.0, 2.0, 3.0)))
+    close(curve[0], 0.1, 1e-5)
+    assert np.isnan(curve[1:]).all()
+    close(M.mean_translation_error(pred, gt, mask, distances=(1.0, 2.0, 3.0)), 0.1, 1e-5)
+    # leading batch dims: two clips, the second drifting twice as fast
+    p2, g2 = walk(17, 0.25, 0.05)
+    both = np.asarray(M.cumulative_translation_error(np.stack([walk(17, 0.25, 0.025)[0], p2]), np.stack([gt, g2]),
+                                                     distances=(1.0, 2.0)))
+    np.testing.assert_allclose(both, [[0.1, 0.2], [0.2, 0.4]], atol=1e-5)
+    with pytest.raises(ValueError, match=r"pred must have shape \(\.\.\., T, 3\), got \(17, 2\)"):
+        M.cumulative_translation_error(pred[:, :2], gt[:, :2])
+    with pytest.raises(ValueError, match="pred and gt must have the same shape"):
+        M.cumulative_translation_error(pred[:5], gt)
+    with pytest.raises(ValueError, match=r"mask must have shape \(\.\.\., T\) = \(17,\)"):
+        M.cumulative_translation_error(pred, gt, mask[:5])
+
+
+# ---------------------------------------------------------------------------------------
 # smoothness
 # ---------------------------------------------------------------------------------------
 
@@ -455,6 +644,14 @@ def test_metrics_jit_and_vmap_over_clips():
     both = np.stack([g, 2 * g])
     out = jax.jit(M.jitter)(both, jnp.array([10.0, 10.0]))
     np.testing.assert_allclose(np.asarray(out), [3.0, 6.0], rtol=1e-4)
+    # the sparse-IMU metrics: vmapped over clips inside jit
+    R = np.stack([np.tile(rot("z", 90), (2, 4, 1, 1)), np.tile(rot("z", 30), (2, 4, 1, 1))])
+    eye = np.tile(np.eye(3, dtype=np.float32), (2, 2, 4, 1, 1))
+    np.testing.assert_allclose(np.asarray(jax.jit(jax.vmap(M.sip_error))(R, eye)), [90.0, 30.0], atol=TOL)
+    walks = [walk(17, 0.25, c) for c in (0.025, 0.05)]
+    curves = jax.jit(jax.vmap(lambda p, g: M.cumulative_translation_error(p, g, distances=(1.0, 2.0))))(
+        np.stack([w[0] for w in walks]), np.stack([w[1] for w in walks]))
+    np.testing.assert_allclose(np.asarray(curves), [[0.1, 0.2], [0.2, 0.4]], atol=1e-5)
 
 
 def test_evaluate_arrays_keys_follow_the_inputs_and_are_never_nan():

@@ -1,5 +1,6 @@
-"""Evaluation metrics of 3D human motion capture: pose, smoothness, 2D reprojection, foot-floor
-contact, dynamics and contact classification, each exactly as its source paper defines it.
+"""Evaluation metrics of 3D human motion capture: pose, body orientations and travelled-distance
+translation drift (sparse-IMU capture), smoothness, 2D reprojection, foot-floor contact, dynamics
+and contact classification, each exactly as its source paper defines it.
 
 Papers (full text in ``shared/papers/``): [000] Shimada et al. 2021, Neural PhysCap; [001]
 Rempe et al. 2020, Contact and Human Dynamics from Monocular Video; [002] Yi et al. 2022, PIP.
@@ -41,7 +42,7 @@ from jmocap import physics as P
 from jmocap.camera import Camera, default_extrinsics, project, world_to_camera
 from jmocap.constants import FRICTION_MU, GRAVITY  # the body weight is mass * GRAVITY
 from jmocap.model import Model, character
-from jmocap.numerics import safe_div, safe_normalize
+from jmocap.numerics import safe_div, safe_norm, safe_normalize
 from jmocap.physics.contact import sole_half_width
 from jmocap.physics.linalg import det3
 from jmocap.physics.rotations import quat_to_mat
@@ -237,7 +238,10 @@ def _errors_mm(pred, gt, mask, align, root):
 def mpjpe(pred: Array, gt: Array, mask=None, *, align: str = "root", root=(0,)) -> Array:
     """Mean per-joint position error (mm): the mean over real frames and joints of
     ``|p_pred - p_gt|`` after ``align`` (root-aligned by default; ``"none"`` for the absolute,
-    global error; ``"procrustes"`` for PA-MPJPE). [000] Table 1, Sec. 4.3."""
+    global error; ``"procrustes"`` for PA-MPJPE). [000] Table 1, Sec. 4.3. Root-aligned, it is
+    TransPose's *positional error* as its paper defines it (the mean Euclidean error of all
+    joints with the root joint aligned; there in cm, here in mm; its evaluation script also
+    aligns the root orientation: :func:`mpjpe_root_frame`)."""
     err, w = _errors_mm(pred, gt, mask, align, root)
     return _mean(err, w, 2)
 
@@ -291,6 +295,219 @@ def root_translation_error(pred: Array, gt: Array, mask=None, *, root=(0,)) -> A
 
 
 # =========================================================================================
+# sparse-IMU pose and translation: body orientations, root-frame joints, travelled distance
+# (PIP [002] Sec. 4 and Fig. 3, after TransPose, Yi et al. 2021, Sec. 5)
+# =========================================================================================
+
+#: The bodies whose global orientation the SIP error scores ("upper arms and legs", [002] Sec. 4),
+#: in the order of SMPL's joints 1, 2, 16, 17 (L_Hip, R_Hip, L_Shoulder, R_Shoulder) that
+#: TransPose's and PIP's evaluation (``joint_mask=[1, 2, 16, 17]``) reads. An SMPL joint's
+#: global rotation is that of the bone below it; on jmocap's character (``assets/mjcf/humanoid.xml``)
+#: the MuJoCo body that carries the hip joints and spans hip -> knee is ``left_hip`` /
+#: ``right_hip`` (the thigh), and the body that carries the shoulder joints and spans shoulder ->
+#: elbow is ``left_shoulder`` / ``right_shoulder`` (the upper arm). (As :data:`jmocap.data.imu.
+#: SENSOR_BODIES` names the forearm ``left_elbow`` and the lower leg ``left_knee``.)
+SIP_BODIES = ("left_hip", "right_hip", "left_shoulder", "right_shoulder")
+#: the distances (m) of PIP's cumulative translation error curve (its evaluation script: 1..7 m)
+TRANSLATION_DISTANCES_M = (1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0)
+
+
+def body_rotations(model: Model, q: Array, bodies: tuple[str, ...] | None = None) -> Array:
+    """World orientations (..., T, B, 3, 3) of the MuJoCo ``bodies`` (names; default: every body
+    but the world, in the model's order) along a trajectory ``q`` (..., T, nq), by forward
+    kinematics (:func:`jmocap.physics.forward_kinematics`, ``xmat``: columns are the body's axes
+    in the world). jit/vmap-able (the names are static). On jmocap's character every body frame
+    is the world frame at the rest pose (a T-pose facing +x), so orientations of characters of
+    different sizes compare directly. For the SIP error: ``body_rotations(model, q, SIP_BODIES)``;
+    the root (pelvis) orientation: ``body_rotations(model, q, ("pelvis",))[..., 0, :, :]``."""
+    return _body_rotations(model, q, None if bodies is None else tuple(bodies))
+
+
+@partial(jax.jit, static_argnames=("bodies",))
+def _body_rotations(model: Model, q: Array, bodies) -> Array:
+    q = _points(q, "q", f"T, {model.nq}")
+    ids = np.arange(1, model.topo.nbody) if bodies is None else np.array([model.body_id(b) for b in bodies], int)
+    flat = q.reshape(-1, model.nq)
+    R = jax.vmap(lambda x: P.forward_kinematics(model, x).xmat[ids])(flat)
+    return R.reshape(q.shape[:-1] + (len(ids), 3, 3))
+
+
+@jax.jit
+def rotation_angle_deg(a: Array, b: Array) -> Array:
+    """Geodesic distance (degrees, 0..180) between rotation matrices a, b (..., 3, 3): the angle
+    of the relative rotation ``D = a^T b``, ``atan2(|vee(D - D^T)|, tr D - 1)`` (= arccos((tr D -
+    1) / 2), without arccos's loss of precision near 0)."""
+    d = jnp.swapaxes(a, -1, -2) @ b
+    two_cos = d[..., 0, 0] + d[..., 1, 1] + d[..., 2, 2] - 1.0
+    two_sin = jnp.stack([d[..., 2, 1] - d[..., 1, 2], d[..., 0, 2] - d[..., 2, 0], d[..., 1, 0] - d[..., 0, 1]], -1)
+    return jnp.degrees(jnp.arctan2(safe_norm(two_sin), two_cos))
+
+
+def _rotations(pred_rot, gt_rot, pred_root, gt_root):
+    pred_rot = _points(pred_rot, "pred_rot", "T, B, 3, 3")
+    gt_rot = _points(gt_rot, "gt_rot", "T, B, 3, 3")
+    _same(pred_rot, gt_rot, "pred_rot", "gt_rot")
+    if (pred_root is None) != (gt_root is None):
+        raise ValueError("pred_root and gt_root must be given together (root orientation aligned) or not at all")
+    if pred_root is not None:
+        want = pred_rot.shape[:-3] + (3, 3)
+        for name, r in (("pred_root", pred_root), ("gt_root", gt_root)):
+            if jnp.shape(r) != want:
+                raise ValueError(f"{name} must have shape (..., T, 3, 3) = {want}, got {tuple(jnp.shape(r))}")
+        # each body's orientation in its own root's frame: R_root^T R_b
+        pred_rot = jnp.swapaxes(jnp.asarray(pred_root), -1, -2)[..., None, :, :] @ pred_rot
+        gt_rot = jnp.swapaxes(jnp.asarray(gt_root), -1, -2)[..., None, :, :] @ gt_rot
+    return pred_rot, gt_rot
+
+
+@jax.jit
+def orientation_errors(pred_rot: Array, gt_rot: Array, pred_root=None, gt_root=None) -> Array:
+    """Per-body orientation errors (..., T, B) in degrees: :func:`rotation_angle_deg` between the
+    estimated and true world orientations (..., T, B, 3, 3) of each body (global: no alignment).
+    With the root orientations ``pred_root``, ``gt_root`` (..., T, 3, 3) (both or neither) the
+    root orientation is aligned: each body is compared in its own root's frame,
+    ``angle((R̂_root^T R̂_b)^T (R_root^T R_b))``."""
+    p, g = _rotations(pred_rot, gt_rot, pred_root, gt_root)
+    return rotation_angle_deg(p, g)
+
+
+@jax.jit
+def angular_error(pred_rot: Array, gt_rot: Array, mask=None, *, pred_root=None, gt_root=None) -> Array:
+    """Angular error (degrees), TransPose Sec. 5 (the mean global rotation error of all body
+    joints): the mean over the B bodies given and the real frames of :func:`orientation_errors`
+    of the world orientations (..., T, B, 3, 3), e.g. of every body of the character
+    (:func:`body_rotations` with ``bodies=None``). Global by default; ``pred_root``/``gt_root``
+    align the root orientation (see :func:`sip_error`). ``mask``: (..., T) frames or (..., T, B)
+    bodies. jmocap's character has other bodies than SMPL's 24 joints, so the value is not
+    comparable with the papers' numbers beyond its meaning."""
+    e = orientation_errors(pred_rot, gt_rot, pred_root, gt_root)
+    return _mean(e, _joint_mask(mask, e.shape), 2)
+
+
+@jax.jit
+def sip_error(pred_rot: Array, gt_rot: Array, mask=None, *, pred_root=None, gt_root=None) -> Array:
+    """SIP error (degrees), PIP [002] Sec. 4: "the mean orientation error of the upper arms and
+    legs in the global space": the mean over the four :data:`SIP_BODIES` and the real frames of
+    the geodesic angle between estimated and true world orientations. ``pred_rot``, ``gt_rot``
+    (..., T, 4, 3, 3) are those of :data:`SIP_BODIES` (``body_rotations(model, q, SIP_BODIES)``).
+
+    **Global** by default, as the paper states: no alignment, so an error of the root (pelvis)
+    orientation counts in every body. PIP's and TransPose's evaluation scripts set SMPL's root
+    (pelvis) rotation to the identity in estimate and truth before forward kinematics, i.e. they
+    compare the bodies in the pelvis frame; passing ``pred_root``, ``gt_root`` (..., T, 3, 3)
+    (the pelvis orientations) reproduces that (root orientation aligned). With six IMUs the
+    pelvis orientation is measured, so the two differ little there; for a monocular method they
+    can differ by the whole heading error. ``mask``: (..., T) frames or (..., T, 4) bodies.
+    """
+    if jnp.ndim(pred_rot) >= 4 and jnp.shape(pred_rot)[-3] != len(SIP_BODIES):
+        raise ValueError(f"pred_rot must hold the {len(SIP_BODIES)} SIP_BODIES {SIP_BODIES}: shape (..., T, 4, 3, 3), "
+                         f"got {tuple(jnp.shape(pred_rot))}")
+    return angular_error(pred_rot, gt_rot, mask, pred_root=pred_root, gt_root=gt_root)
+
+
+@partial(jax.jit, static_argnames=("root",))
+def mpjpe_root_frame(pred: Array, gt: Array, pred_root: Array, gt_root: Array, mask=None, *, root=(0,)) -> Array:
+    """MPJPE (mm) with root position **and** orientation aligned: the mean over real frames and
+    joints of ``|R̂^T (p̂ - r̂) - R^T (p - r)|``, each pose's joints (..., T, J, 3) relative to its
+    root joint r (:func:`root_position`, the layout's ``root``) and expressed in its root body's
+    frame (``pred_root``, ``gt_root`` (..., T, 3, 3): the pelvis orientations, e.g.
+    ``quat_to_mat(q[..., 3:7])``); equivalently the estimate rotated about its root by
+    ``R R̂^T`` onto the truth's root orientation.
+
+    jmocap's mesh-free stand-in for PIP's *mesh error* ([002] Sec. 4: "the mean vertex distance
+    between the reconstructed and ground-truth meshes with both root position and orientation
+    aligned", cm): the same alignment on the layout's joints instead of SMPL's 6890 vertices
+    (jmocap ships no SMPL mesh), in mm. It is also what TransPose's and PIP's scripts compute
+    as "positional error" (their SMPL pelvis rotation set to the identity, root joint position
+    aligned); TransPose's paper words it with the root position aligned only, which is
+    :func:`mpjpe` (``align="root"``). ``mask``: (..., T) frames or (..., T, J) joints.
+    """
+    pred = _points(pred, "pred")
+    gt = _points(gt, "gt")
+    _same(pred, gt, "pred", "gt")
+    want = pred.shape[:-2] + (3, 3)
+    for name, r in (("pred_root", pred_root), ("gt_root", gt_root)):
+        if jnp.shape(r) != want:
+            raise ValueError(f"{name} must have shape (..., T, 3, 3) = {want}, got {tuple(jnp.shape(r))}")
+    a = root_align(pred, root) @ jnp.asarray(pred_root, pred.dtype)  # rows: (R^T x)^T = x^T R
+    b = root_align(gt, root) @ jnp.asarray(gt_root, gt.dtype)
+    m = _joint_mask(mask, pred.shape[:-1])
+    m = m & jnp.all(m[..., np.asarray(root, int)], -1, keepdims=True)
+    return _mean(jnp.linalg.norm(a - b, axis=-1) * 1000.0, m, 2)
+
+
+def _translation_curve(pred: Array, gt: Array, mask: Array, distances: Array, distinct_ends: bool) -> Array:
+    """One clip: pred, gt (T, 3), mask (T,), distances (D,) -> (D,) metres."""
+    T = gt.shape[0]
+    step_ok = mask[1:] & mask[:-1]
+    step = jnp.where(step_ok, jnp.linalg.norm(gt[1:] - gt[:-1], axis=-1), 0.0)
+    s = jnp.concatenate([jnp.zeros(1, gt.dtype), jnp.cumsum(step)])  # ground-truth path length
+    holes = jnp.cumsum(~mask)  # masked frames in 0..t
+    before = holes - (~mask)  # masked frames in 0..t-1
+    i = jnp.arange(T)
+
+    def one(d):
+        e = jnp.searchsorted(s, s + d, side="left")  # the first frame with s[e] >= s[i] + d
+        ec = jnp.minimum(e, T - 1)
+        valid = (e < T) & (holes[ec] - before == 0)  # every frame i..e real
+        if distinct_ends:  # the first valid start of each end frame (ends are monotone in i)
+            same = jnp.concatenate([jnp.zeros(1, bool), valid[:-1] & (ec[1:] == ec[:-1])])
+            valid = valid & ~same
+        travelled = s[ec] - s
+        err = jnp.linalg.norm((pred[ec] - pred) - (gt[ec] - gt), axis=-1)
+        err = safe_div(err * d, travelled)  # the error rescaled to exactly d metres travelled
+        return _mean(err, valid & (i < ec), 1)
+
+    return jax.vmap(one)(distances)
+
+
+@partial(jax.jit, static_argnames=("distinct_ends",))
+def cumulative_translation_error(pred: Array, gt: Array, mask=None, distances=TRANSLATION_DISTANCES_M, *,
+                                 distinct_ends: bool = True) -> Array:
+    """Cumulative translation error (m) against the real travelled distance, PIP [002] Fig. 3
+    ("the global position error w.r.t. the real travelled distance"): (..., D), one value per
+    distance d in ``distances`` (m, > 0; default 1, 2, ..., 7 m as PIP's evaluation script).
+
+    ``pred``, ``gt`` (..., T, 3) are the global root positions (e.g. :func:`root_position` of the
+    joints, or ``q[..., :3]``). With s(t) the path length of the true root up to frame t (the sum
+    of its frame-to-frame displacements), a window starts at any frame i and ends at the first
+    frame e with ``s(e) - s(i) >= d``; its error is the drift of the estimate over the window,
+    each window's start aligned (the estimate translated so that it starts where the truth
+    does), rescaled to exactly d metres:
+
+        err(i, d) = |(p̂(e) - p̂(i)) - (p(e) - p(i))| * d / (s(e) - s(i)).
+
+    The value at d is the mean of err(i, d) over the windows. As PIP's script, only the first
+    start of each end frame counts (``distinct_ends``: starts during a standstill share an end
+    frame and count once; ``False``: every start frame counts). A window counts only where all
+    of its frames are real (``mask`` (..., T)); a distance no window reaches (the clip's path is
+    shorter) is NaN. PIP averages each distance's value over the clips (a figure, not a table
+    number); :func:`mean_translation_error` gives one number per clip.
+    """
+    pred = _points(pred, "pred", "T, 3")
+    gt = _points(gt, "gt", "T, 3")
+    _same(pred, gt, "pred", "gt")
+    m = _frame_mask(mask, pred.shape[:-1])
+    dist = jnp.asarray(distances, pred.dtype)
+    if dist.ndim != 1:
+        raise ValueError(f"distances must have shape (D,), got {tuple(dist.shape)}")
+    lead, T = pred.shape[:-2], pred.shape[-2]
+    out = jax.vmap(lambda p, g, mm: _translation_curve(p, g, mm, dist, distinct_ends))(
+        pred.reshape(-1, T, 3), gt.reshape(-1, T, 3), m.reshape(-1, T))
+    return out.reshape(lead + dist.shape)
+
+
+@partial(jax.jit, static_argnames=("distinct_ends",))
+def mean_translation_error(pred: Array, gt: Array, mask=None, distances=TRANSLATION_DISTANCES_M, *,
+                           distinct_ends: bool = True) -> Array:
+    """The mean (m) of :func:`cumulative_translation_error` over the distances the clip reaches
+    (its defined values); NaN when it reaches none. The mean of a curve that grows with d: compare
+    it only between methods on the same clips and distances."""
+    c = cumulative_translation_error(pred, gt, mask, distances, distinct_ends=distinct_ends)
+    return _mean(c, jnp.isfinite(c), 1)
+
+
+# =========================================================================================
 # smoothness
 # =========================================================================================
 
@@ -339,7 +556,11 @@ def acceleration_error(pred: Array, gt: Array, fps, mask=None) -> Array:
 @jax.jit
 def jitter(joints: Array, fps, mask=None) -> Array:
     """Jitter (km/s^3), PIP [002] Sec. 4: the mean jerk magnitude of all joints in world
-    coordinates, ``|p_{t+3} - 3 p_{t+2} + 3 p_{t+1} - p_t| fps^3 / 1000`` (third differences)."""
+    coordinates, ``|p_{t+3} - 3 p_{t+2} + 3 p_{t+1} - p_t| fps^3 / 1000`` (third differences):
+    the paper's "mean jerk ... of all body joints in the global space in km/s^3", on the layout's
+    joints instead of SMPL's 24. (PIP's published evaluation script, by default, takes the jerk
+    of the translation-free pose with the pelvis rotation set to the identity, and names the
+    global one "absolute jitter"; this follows the paper's wording: global.)"""
     joints = _points(joints, "joints")
     d, w = _diff(joints, 3, mask)
     jerk = jnp.linalg.norm(d, axis=-1) * _bcast(fps, d.dtype, 2) ** 3 / 1000.0
