@@ -70,6 +70,7 @@ from jmocap.data.clip import (
     _scalar_number,
     validate_ground_truth,
 )
+from jmocap.data.rotations import matrix_to_quat, quat_to_matrix
 from jmocap.io import atomic_write, atomic_write_npz
 from jmocap.layouts import LAYOUTS
 
@@ -101,50 +102,6 @@ class IMUClipFormatError(ClipFormatError):
 
 
 # --- rotations (numpy) ------------------------------------------------------------------------
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of unit wxyz quaternions (..., 4)."""
-    q = np.asarray(q, np.float64)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    R = np.empty(q.shape[:-1] + (3, 3))
-    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    R[..., 0, 1] = 2 * (x * y - w * z)
-    R[..., 0, 2] = 2 * (x * z + w * y)
-    R[..., 1, 0] = 2 * (x * y + w * z)
-    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    R[..., 1, 2] = 2 * (y * z - w * x)
-    R[..., 2, 0] = 2 * (x * z - w * y)
-    R[..., 2, 1] = 2 * (y * z + w * x)
-    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return R
-
-
-def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """Unit wxyz quaternions (..., 4), w >= 0, of rotation matrices (..., 3, 3): the largest of
-    w, x, y, z is computed from the diagonal and the rest from it (Shepperd's method)."""
-    R = np.asarray(R, np.float64)
-    m = R.reshape(-1, 3, 3)
-    tr = np.trace(m, axis1=1, axis2=2)
-    diag = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], 1)
-    k = np.argmax(diag, axis=1)
-    q = np.empty((len(m), 4))
-    for i, (Ri, ki) in enumerate(zip(m, k, strict=True)):
-        if ki == 0:
-            s = 2.0 * np.sqrt(max(1.0 + tr[i], 1e-300))
-            q[i] = (0.25 * s, (Ri[2, 1] - Ri[1, 2]) / s, (Ri[0, 2] - Ri[2, 0]) / s, (Ri[1, 0] - Ri[0, 1]) / s)
-        else:
-            a = ki - 1
-            b, c = (a + 1) % 3, (a + 2) % 3
-            s = 2.0 * np.sqrt(max(1.0 + Ri[a, a] - Ri[b, b] - Ri[c, c], 1e-300))
-            v = np.empty(3)
-            v[a] = 0.25 * s
-            v[b] = (Ri[b, a] + Ri[a, b]) / s
-            v[c] = (Ri[c, a] + Ri[a, c]) / s
-            q[i] = ((Ri[c, b] - Ri[b, c]) / s, *v)
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    q[q[:, 0] < 0] *= -1.0
-    return q.reshape(R.shape[:-2] + (4,))
 
 
 def slerp(R0: np.ndarray, R1: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -663,6 +620,21 @@ def sensor_order(names, where: str, key: str = "sensors") -> np.ndarray:
     return np.array([names.index(s) for s in SENSORS])
 
 
+def _json_object(text, where: str, expected: str) -> dict:
+    """``text`` parsed as JSON (:func:`jmocap.data.limits.parse_json`, its limits kept) that must
+    be an object; otherwise an :class:`IMUClipFormatError` naming ``where`` (``"<expected> a JSON
+    object, got <type>"``)."""
+    try:
+        doc = limits.parse_json(text, where)
+    except limits.LimitError:
+        raise
+    except FormatError as e:
+        raise IMUClipFormatError(str(e)) from None
+    if not isinstance(doc, dict):
+        raise IMUClipFormatError(f"{expected} a JSON object, got {type(doc).__name__}")
+    return doc
+
+
 def imu_clip_from_arrays(data, where: str) -> IMUClip:
     """An :class:`IMUClip` from a mapping of ``.npz`` arrays; errors name ``where``."""
     fmt = _str(data, "format", where)
@@ -697,15 +669,7 @@ def imu_clip_from_arrays(data, where: str) -> IMUClip:
             values[key] = data[key]
     meta_s = _str(data, "meta", where, False)
     if meta_s is not None:
-        try:
-            meta = limits.parse_json(meta_s, f"{where}: field 'meta'")
-        except limits.LimitError:
-            raise
-        except FormatError as e:
-            raise IMUClipFormatError(str(e)) from None
-        if not isinstance(meta, dict):
-            raise IMUClipFormatError(f"{where}: field 'meta' must be a JSON object, got {type(meta).__name__}")
-        values["meta"] = meta
+        values["meta"] = _json_object(meta_s, f"{where}: field 'meta'", f"{where}: field 'meta' must be")
     try:
         return IMUClip(**values)
     except FormatError as e:
@@ -785,14 +749,7 @@ def read_imu_json(path: str | os.PathLike, *, name: str | None = None, gaps: str
     path = Path(path)
     where = str(path)
     limits.check_file_size(path, where)
-    try:
-        doc = limits.parse_json(path.read_bytes(), where)
-    except limits.LimitError:
-        raise
-    except FormatError as e:
-        raise IMUClipFormatError(str(e)) from None
-    if not isinstance(doc, dict):
-        raise IMUClipFormatError(f"{where}: expected a JSON object, got {type(doc).__name__}")
+    doc = _json_object(path.read_bytes(), where, f"{where}: expected")
     unknown = sorted(set(doc) - _JSON_KEYS)
     if unknown:
         raise IMUClipFormatError(f"{where}: unknown key(s) {unknown}; known: {sorted(_JSON_KEYS)}")

@@ -280,24 +280,32 @@ def plain_data(obj: Any, where: str, field: str) -> Any:
     return walk(obj, "", 0)
 
 
+def _restricted_load(f, where: str, field: str, malformed: str, one_line: bool = False) -> Any:
+    """``RestrictedUnpickler(f, where, field).load()`` with its failures as jmocap's errors: a
+    refused callable or class a :class:`FormatError`, an allocation over the limits a
+    :class:`LimitError`, and any other error of a truncated or malformed pickle (any error of a
+    stand-in) a :class:`FormatError` ``"<malformed> (<error>)"`` (``one_line``: its whitespace
+    collapsed)."""
+    try:
+        return RestrictedUnpickler(f, where, field).load()
+    except FormatError:
+        raise
+    except _TooBig as e:
+        raise LimitError(f"{where}: field {field!r}: {e}") from None
+    except _Refused as e:
+        raise FormatError(f"{where}: field {field!r}: refuses {e} {_REFUSAL}") from None
+    except Exception as e:  # truncated or malformed pickle: any error of a stand-in
+        text = " ".join(str(e).split()) if one_line else str(e)
+        raise FormatError(f"{malformed} ({text})") from None
+
+
 def _unpickle_member(z: zipfile.ZipFile, info: zipfile.ZipInfo, where: str, field: str) -> Any:
     """One ``.npy`` member: a plain array as numpy reads it without pickle, or an object array
     through :class:`RestrictedUnpickler` and :func:`plain_data` (a 0-d one gives its item)."""
     with z.open(info) as f:
         shape, _fortran, dtype = check_npy_header(f, where, field)
         if dtype.hasobject:
-            try:
-                top = RestrictedUnpickler(f, where, field).load()
-            except FormatError:
-                raise
-            except _TooBig as e:
-                raise LimitError(f"{where}: field {field!r}: {e}") from None
-            except _Refused as e:
-                raise FormatError(f"{where}: field {field!r}: refuses {e} {_REFUSAL}") from None
-            except Exception as e:  # truncated or malformed pickle: any error of a stand-in
-                raise FormatError(
-                    f"{where}: field {field!r}: not a readable pickled array ({e})"
-                ) from None
+            top = _restricted_load(f, where, field, f"{where}: field {field!r}: not a readable pickled array")
             if isinstance(top, _ArrayBuilder) and top.array is not None:
                 arr = top.array
                 if arr.shape != shape:
@@ -350,16 +358,7 @@ def load_pickle_file(path: str | os.PathLike, where: str | None = None, field: s
     where = where or str(path)
     check_file_size(path, where)
     with open(Path(path), "rb") as f:
-        try:
-            top = RestrictedUnpickler(f, where, field).load()
-        except FormatError:
-            raise
-        except _TooBig as e:
-            raise LimitError(f"{where}: field {field!r}: {e}") from None
-        except _Refused as e:
-            raise FormatError(f"{where}: field {field!r}: refuses {e} {_REFUSAL}") from None
-        except Exception as e:  # truncated or malformed pickle
-            raise FormatError(f"{where}: not a readable pickle file ({' '.join(str(e).split())})") from None
+        top = _restricted_load(f, where, field, f"{where}: not a readable pickle file", one_line=True)
     return plain_data(top, where, field)
 
 

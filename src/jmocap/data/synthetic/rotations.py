@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import math
 
-import mujoco
 import numpy as np
+
+from jmocap.data.rotations import matrix_to_quat, quat_to_matrix
 
 
 def _rx(a):
@@ -102,32 +103,15 @@ def _slerp_R(R0, R1, h):
 
 
 def _mat2quat(R):
-    """wxyz quaternions (..., 4) of rotation matrices (..., 3, 3), w >= 0."""
-    R = np.asarray(R, float)
-    shp = R.shape[:-2]
-    R = R.reshape(-1, 3, 3)
-    q = np.empty((R.shape[0], 4))
-    for i, Ri in enumerate(R):
-        mujoco.mju_mat2Quat(q[i], Ri.reshape(9))
-    q[q[:, 0] < 0] *= -1.0
-    return q.reshape(shp + (4,))
+    """wxyz quaternions (..., 4) of rotation matrices (..., 3, 3), w >= 0 (MuJoCo C's
+    ``mju_mat2Quat``)."""
+    return matrix_to_quat(R)
 
 
 def _quat2mat(q):
+    """Rotation matrices (..., 3, 3) of wxyz quaternions (..., 4), normalised first."""
     q = np.asarray(q, float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    R = np.empty(q.shape[:-1] + (3, 3))
-    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    R[..., 0, 1] = 2 * (x * y - w * z)
-    R[..., 0, 2] = 2 * (x * z + w * y)
-    R[..., 1, 0] = 2 * (x * y + w * z)
-    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    R[..., 1, 2] = 2 * (y * z - w * x)
-    R[..., 2, 0] = 2 * (x * z - w * y)
-    R[..., 2, 1] = 2 * (y * z + w * x)
-    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return R
+    return quat_to_matrix(q / np.linalg.norm(q, axis=-1, keepdims=True))
 
 
 def _continuous_quats(q):
