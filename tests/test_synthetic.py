@@ -53,6 +53,13 @@ def jump_clip():
     return S.generate_clip(2, 0, S.SynthConfig(kinds=("jump",), frames=150))
 
 
+@pytest.fixture(scope="module")
+def extended_clips():
+    """One clip of each everyday kind of the extended generator (kinematic variant)."""
+    return [S.generate_clip(3, 0, S.SynthConfig.extended_generator(kinds=(k,), frames=150))
+            for k in ("bend", "crouch", "reach")]
+
+
 def _model_for(clip):
     return S.character(round(clip.height_m, 2))
 
@@ -92,8 +99,8 @@ def test_same_seed_same_arrays():
 # --- kinematic cleanliness ---------------------------------------------------------------
 
 
-def test_planted_feet_do_not_move(walk_clip, mixed_clips):
-    for clip in [walk_clip, *mixed_clips]:
+def test_planted_feet_do_not_move(walk_clip, mixed_clips, extended_clips):
+    for clip in [walk_clip, *mixed_clips, *extended_clips]:
         mj = _model_for(clip).mj
         pos = _sites(mj, clip.gt_q.astype(np.float64), CONTACT_SITES)
         n_runs = 0
@@ -106,8 +113,8 @@ def test_planted_feet_do_not_move(walk_clip, mixed_clips):
         assert n_runs > 0
 
 
-def test_contact_labels_follow_rempe_rule(walk_clip, mixed_clips):
-    for clip in [walk_clip, *mixed_clips]:
+def test_contact_labels_follow_rempe_rule(walk_clip, mixed_clips, extended_clips):
+    for clip in [walk_clip, *mixed_clips, *extended_clips]:
         mj = _model_for(clip).mj
         pos = _sites(mj, clip.gt_q.astype(np.float64), CONTACT_SITES)
         c = clip.gt_contacts.astype(bool)
@@ -134,8 +141,8 @@ def test_contact_rule_hand_computed():
     assert c[:, 3].tolist() == [1, 1, 0, 0]
 
 
-def test_no_floor_penetration_and_limits(walk_clip, mixed_clips, jump_clip):
-    for clip in [walk_clip, *mixed_clips, jump_clip]:
+def test_no_floor_penetration_and_limits(walk_clip, mixed_clips, jump_clip, extended_clips):
+    for clip in [walk_clip, *mixed_clips, jump_clip, *extended_clips]:
         mj = _model_for(clip).mj
         names = [mj.site(i).name for i in range(mj.nsite)
                  if mj.site(i).name.startswith(("kp_", "contact_"))]
@@ -148,6 +155,40 @@ def test_no_floor_penetration_and_limits(walk_clip, mixed_clips, jump_clip):
                 lo, hi = mj.jnt_range[j]
                 # float32 storage: 1e-6 rad
                 assert q[:, a].min() >= lo - 1e-6 and q[:, a].max() <= hi + 1e-6, mj.joint(j).name
+
+
+def test_extended_kinds_do_what_they_say(extended_clips):
+    """Bend: a hand comes within 45 % of the subject's height of the floor and the trunk
+    (mid-hip to neck) tilts > 45 degrees from vertical; crouch: the hips drop by > 12 % of the
+    height; reach: a wrist goes above the head top or > 40 % of the height sideways from the
+    mid-hip. Positions by MuJoCo C kinematics; the subject heights are the extended range's."""
+    names = ["kp_mid_hip", "kp_neck", "kp_head_top", "kp_left_wrist", "kp_right_wrist"]
+    for clip, kind in zip(extended_clips, ("bend", "crouch", "reach"), strict=True):
+        assert clip.meta["kind"] == kind and 1.45 <= clip.height_m <= 2.0
+        assert kind in [k for k, _, _ in clip.meta["kind_per_frame"]]
+        p = _sites(_model_for(clip).mj, clip.gt_q.astype(np.float64), names)
+        hip, neck, top, wr = p[:, 0], p[:, 1], p[:, 2], p[:, 3:5]
+        h = clip.height_m
+        if kind == "bend":
+            trunk = neck - hip
+            tilt = np.degrees(np.arccos(trunk[:, 2] / np.linalg.norm(trunk, axis=-1)))
+            assert wr[..., 2].min() < 0.45 * h and tilt.max() > 45.0, (wr[..., 2].min(), tilt.max())
+        elif kind == "crouch":
+            assert hip[:, 2].max() - hip[:, 2].min() > 0.12 * h
+        else:
+            up = (wr[..., 2] - top[:, None, 2]).max()
+            side = np.linalg.norm(wr[..., :2] - hip[:, None, :2], axis=-1).max()
+            assert up > 0.0 or side > 0.4 * h, (up, side)
+
+
+def test_classic_generator_draws_only_classic_kinds():
+    """Without ``extended`` the generator is the classic one (the documented archives are
+    regenerated bit for bit: only the classic kinds, no extended variation)."""
+    cfg = S.SynthConfig(frames=30)
+    kinds = {k for i in range(4) for k in S.generate_clip(9, i, cfg).meta["kinds"]}
+    assert kinds <= set(S.CLASSIC_KINDS)
+    assert set(S.EXTENDED_KINDS) - set(S.CLASSIC_KINDS) == {"bend", "crouch", "reach"}
+    assert S.MOTION_KINDS[:8] == ("walk", "run", "jump", "squat", "lunge", "kick", "stand", "dance")
 
 
 def test_keypoints3d_are_the_layout_sites(walk_clip):
@@ -379,6 +420,14 @@ def test_cli_data_synth(tmp_path, capsys):
     # changing settings on an existing archive is refused
     with pytest.raises(ArchiveError):
         main(argv[:-1] + ["--fps", "25", "--quiet"])
+    # the extended generator is recorded in the archive's settings
+    ext = tmp_path / "ext"
+    assert main(["data", "synth", "--out", str(ext), "--clips", "1", "--seed", "9", "--frames-per-clip", "30",
+                 "--kinds", "reach", "--extended", "--quiet"]) == 0
+    cfg = json.loads((ext / "archive.json").read_text())["config"]
+    assert cfg["extended"] is True and cfg["height_m"] == [1.45, 2.0]
+    assert cfg["camera"]["focal_equiv_mm"] == [13.0, 120.0] and cfg["corruption"]["occlusion_prob"] > 0
+    assert Archive(ext).ok[0]["kind"] == "reach"
 
 
 def test_cli_bad_arguments(capsys):

@@ -169,3 +169,63 @@ def test_corruption_noise_outliers_swaps_confidence():
     uv, kp, _ = _corrupted(S.Corruption.none())
     np.testing.assert_allclose(kp[..., :2], uv, atol=1e-3)
     assert np.all(kp[..., 2] == 1)
+
+
+def test_extended_cameras_focal_roll_and_pitch():
+    """CameraConfig.extended(): the focal length in 35 mm-equivalent millimetres of the image's
+    long side, the roll about the optical axis read back from the extrinsics (the image of the
+    world's up direction), cameras within 2-10 m and 0.3-3 m high, the subject in view."""
+    rng = np.random.default_rng(4)
+    cfg = S.CameraConfig.extended()
+    T, J = 60, 25
+    pts = np.zeros((T, J, 3))
+    pts[..., 0] = np.linspace(0, 2, T)[:, None] + rng.uniform(-0.2, 0.2, (T, J))
+    pts[..., 1] = rng.uniform(-0.2, 0.2, (T, J))
+    pts[..., 2] = rng.uniform(0.0, 1.8, (T, J))
+    rolls, pitches = [], []
+    for _ in range(12):
+        K, size, E, info = S.sample_camera(rng, pts, cfg)
+        uv = _pinhole(K, E, pts)
+        inside = (uv[..., 0] >= 0) & (uv[..., 0] < size[0]) & (uv[..., 1] >= 0) & (uv[..., 1] < size[1])
+        assert inside.mean() >= cfg.min_visible
+        if not info.get("focal_shrunk"):
+            f_mm = K[0] * 36.0 / max(size)
+            assert 13.0 - 1e-9 <= f_mm <= 120.0 + 1e-9
+        cam = -E[:3, :3].T @ E[:3, 3]
+        assert 0.3 <= cam[2] <= 3.0
+        up = E[:3, :3] @ np.array([0.0, 0.0, 1.0])  # world up in camera axes (image y is down)
+        roll = np.degrees(np.arctan2(up[0], -up[1]))
+        assert abs(roll) <= 5.0 + 1e-9
+        np.testing.assert_allclose(roll, info["roll_deg"], atol=1e-9)
+        rolls.append(abs(roll))
+        pitches.append(np.degrees(np.arcsin(np.clip(-(E[2, :3] @ np.array([0, 0, 1.0])), -1, 1))))
+    assert max(rolls) > 1.0  # rolled at all
+    assert max(np.abs(pitches)) > 10.0  # some cameras look up or down at the subject
+
+
+def test_occlusion_bursts_hide_one_limb_or_side():
+    lay = get_layout("body25")
+    groups = S.keypoints._limb_groups(lay.joints)
+    assert [lay.joints[i] for i in groups[("left", "arm")]] == ["LShoulder", "LElbow", "LWrist"]
+    assert [lay.joints[i] for i in groups[("right", "leg")]] == ["RKnee", "RAnkle", "RBigToe", "RSmallToe", "RHeel"]
+    c = S.Corruption(noise_px=0, noise_rel=0, outlier_prob=0, drop_prob=0, swap_prob=0, drop_outside=False,
+                     occlusion_prob=0.02, occlusion_burst=10.0, occlusion_drop=0.5)
+    uv, kp, stats = _corrupted(c, T=2000)
+    assert stats["occlusion_events"] > 10
+    hidden = (kp[..., 2] < 0.45)  # dropped (0) or guessed (conf_occluded <= 0.4); clean >= 0.75
+    limb = sorted(i for g in groups.values() for i in g)
+    others = [j for j in range(lay.num_joints) if j not in limb]
+    assert not hidden[:, others].any()  # the face, neck and hips are never occluded
+    assert abs(hidden.mean() - stats["occluded"]) < 1e-12
+    dropped = kp[..., 2] == 0
+    assert 0.4 < dropped.sum() / hidden.sum() < 0.6  # occlusion_drop
+    guessed = hidden & ~dropped
+    moved = np.linalg.norm(kp[..., :2] - uv, axis=-1)
+    assert np.all(moved[~hidden] < 1e-3) and np.median(moved[guessed]) > 1.0
+    # every hidden frame hides whole groups: a limb's joints are hidden together
+    for g in groups.values():
+        h = hidden[:, g]
+        assert np.all(h.all(axis=1) | ~h.any(axis=1))
+    # off by default, and the default corruption's draws are unchanged by the option
+    _, kp0, st0 = _corrupted(S.Corruption())
+    assert "occlusion_events" not in st0

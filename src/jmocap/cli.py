@@ -117,6 +117,10 @@ def _data(p: argparse.ArgumentParser) -> None:
     s.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
     s.add_argument("--kinds", type=_kinds_arg, default=None, metavar="K1,K2",
                    help="motion kinds to draw from (default: all)")
+    s.add_argument("--extended", action="store_true",
+                   help="the extended generator: everyday motions (bend, crouch, reach) beside the classic "
+                        "kinds, gestures and speed changes while walking, subjects 1.45-2.0 m, phone to "
+                        "telephoto cameras 2-10 m away and 0.3-3 m high, occlusion bursts (docs/data.md)")
     s.add_argument("--no-corruption", action="store_true",
                    help="exact 2D projections, confidence 1 (with --imu: exact IMU signals)")
     s.add_argument("--imu", action="store_true",
@@ -148,23 +152,23 @@ def _synth_one(job):
 
 
 def cmd_data_synth(args) -> int:
+    import dataclasses
+
     from jmocap.data.archive import ArchiveWriter
     from jmocap.data.synthetic import Corruption, SynthConfig, clip_name
 
     if args.clips < 0:
         print("jmocap data synth: --clips must be >= 0", file=sys.stderr)
         return 2
-    config = SynthConfig(
-        frames=args.frames_per_clip,
-        fps=args.fps,
-        layout=args.layout,
-        physics=args.physics,
-        kinds=args.kinds,
-        corruption=Corruption.none() if args.no_corruption else Corruption(),
-    )
+    fields = dict(frames=args.frames_per_clip, fps=args.fps, layout=args.layout, physics=args.physics,
+                  kinds=args.kinds)
+    if args.extended:
+        config = SynthConfig.extended_generator(**fields)
+    else:
+        config = SynthConfig(**fields, corruption=Corruption())
+    if args.no_corruption:
+        config = dataclasses.replace(config, corruption=Corruption.none())
     if args.imu:
-        import dataclasses
-
         from jmocap.data.synthetic.imu import IMUCorruption, IMUSynthConfig
 
         config = IMUSynthConfig(synth=dataclasses.replace(config, corruption=Corruption.none()),

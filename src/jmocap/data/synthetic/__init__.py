@@ -3,8 +3,9 @@
 See ``docs/data.md`` for the full description. In short:
 
 * :func:`generate_motion` plans a motion (walking, running, jumps, squats, lunges, kicks,
-  standing with arm motion, dance-like stepping, and transitions between them) for a
-  character of random height, as footsteps + a centre-of-mass (COM) trajectory + upper-body
+  standing with arm motion, dance-like stepping, and transitions between them; the
+  extended generator adds bending to the floor, crouching and reaching, arm tasks and speed
+  changes while walking: ``SynthConfig.extended_generator``) for a character of random height, as footsteps + a centre-of-mass (COM) trajectory + upper-body
   joint tracks, and turns it into MuJoCo joint angles:
 
   - every foot contact is a *stance* on a planned footstep: the foot is flat, or rocks about
@@ -84,21 +85,28 @@ from jmocap.data.synthetic.motion import Motion, check_motion, motion_report
 from jmocap.data.synthetic.physics import PhysicsConfig, simulate_tracking
 from jmocap.data.synthetic.plan import MOTION_KINDS, Plan, Pose, Segment, Stance
 from jmocap.data.synthetic.repertoire import (
+    CLASSIC_KINDS,
+    EXTENDED_KINDS,
     GESTURES,
     SEGMENTS,
     generate_motion,
+    seg_bend,
+    seg_crouch,
     seg_dance,
     seg_jump,
     seg_kick,
     seg_locomotion,
     seg_lunge,
+    seg_reach,
     seg_squat,
     seg_stand,
 )
 
 __all__ = [
+    "CLASSIC_KINDS",
     "CONTACT_MAX_HEIGHT_M",
     "CONTACT_MAX_STEP_M",
+    "EXTENDED_KINDS",
     "GENERATOR",
     "GESTURES",
     "MOTION_KINDS",
@@ -127,11 +135,14 @@ __all__ = [
     "motion_report",
     "project_points",
     "sample_camera",
+    "seg_bend",
+    "seg_crouch",
     "seg_dance",
     "seg_jump",
     "seg_kick",
     "seg_locomotion",
     "seg_lunge",
+    "seg_reach",
     "seg_squat",
     "seg_stand",
     "simulate_tracking",

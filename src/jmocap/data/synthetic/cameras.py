@@ -22,7 +22,14 @@ from jmocap.data.synthetic.errors import GenerationError
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """Static pinhole cameras looking at the subject (OpenCV axes, no distortion)."""
+    """Static pinhole cameras looking at the subject (OpenCV axes, no distortion).
+
+    The focal length is log-uniform in ``focal_px``, or, when ``focal_equiv_mm`` is set, in
+    35 mm-equivalent millimetres (``f_px = f_mm / 36 * the image's long side``: 13 mm is a
+    phone's ultra-wide lens, 24-28 mm its main one, 50-120 mm telephoto). The camera looks at
+    a point 35-60 % up the subject (so a high or low camera is pitched), then rolls about its
+    optical axis by up to ``roll_deg`` (a hand-held phone). :meth:`extended` is the extended
+    generator's wider distribution."""
 
     focal_px: tuple[float, float] = (500.0, 2000.0)
     image_sizes: tuple[tuple[int, int], ...] = ((1920, 1080), (1280, 720), (1080, 1920), (1000, 1000))
@@ -32,6 +39,15 @@ class CameraConfig:
     min_visible: float = 0.95  # fraction of joint-frames that must project inside the image
     min_depth_m: float = 1.0  # closest any joint may come to the camera
     tries: int = 30
+    focal_equiv_mm: tuple[float, float] | None = None
+    roll_deg: float = 0.0
+
+    @classmethod
+    def extended(cls) -> CameraConfig:
+        """Phones to telephoto (13-120 mm equivalent), 2-10 m away, 0.3-3 m high, rolled by up
+        to 5 degrees."""
+        return cls(distance_m=(2.0, 10.0), height_m=(0.3, 3.0), focal_equiv_mm=(13.0, 120.0),
+                   roll_deg=5.0, tries=60)
 
 
 def _look_at(eye, target, up):
@@ -72,7 +88,11 @@ def sample_camera(rng: np.random.Generator, points: np.ndarray, cfg: CameraConfi
     best = None
     for attempt in range(cfg.tries):
         W, H = cfg.image_sizes[int(rng.integers(len(cfg.image_sizes)))]
-        f = float(np.exp(rng.uniform(np.log(cfg.focal_px[0]), np.log(cfg.focal_px[1]))))
+        if cfg.focal_equiv_mm is None:
+            f = float(np.exp(rng.uniform(np.log(cfg.focal_px[0]), np.log(cfg.focal_px[1]))))
+        else:
+            f_mm = float(np.exp(rng.uniform(np.log(cfg.focal_equiv_mm[0]), np.log(cfg.focal_equiv_mm[1]))))
+            f = f_mm / 36.0 * max(W, H)
         dist = float(rng.uniform(*cfg.distance_m))
         cam_h = float(rng.uniform(*cfg.height_m))
         az = float(rng.uniform(-np.pi, np.pi))
@@ -81,6 +101,13 @@ def sample_camera(rng: np.random.Generator, points: np.ndarray, cfg: CameraConfi
         if abs(np.dot((target - eye) / np.linalg.norm(target - eye), [0, 0, 1])) > 0.98:
             continue
         E = look_at_extrinsics(eye, target)
+        extra = {}
+        if cfg.roll_deg > 0:  # roll about the optical axis (camera z): E <- Rz(roll) E
+            r = math.radians(float(rng.uniform(-cfg.roll_deg, cfg.roll_deg)))
+            Rz = np.array([[math.cos(r), -math.sin(r), 0.0], [math.sin(r), math.cos(r), 0.0], [0.0, 0.0, 1.0]])
+            E = E.copy()
+            E[:3, :] = Rz @ E[:3, :]
+            extra["roll_deg"] = math.degrees(r)
         cx = W / 2 + float(rng.uniform(-1, 1)) * cfg.principal_jitter * W
         cy = H / 2 + float(rng.uniform(-1, 1)) * cfg.principal_jitter * H
         K = np.array([f, f, cx, cy])
@@ -89,7 +116,8 @@ def sample_camera(rng: np.random.Generator, points: np.ndarray, cfg: CameraConfi
             continue
         inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
         frac = float(inside.mean())
-        cand = (K, np.array([W, H]), E, dict(distance_m=dist, height_m=cam_h, azimuth=az, attempts=attempt + 1))
+        cand = (K, np.array([W, H]), E, dict(distance_m=dist, height_m=cam_h, azimuth=az, attempts=attempt + 1,
+                                                 **extra))
         if frac >= cfg.min_visible:
             return cand
         if best is None or frac > best[0]:

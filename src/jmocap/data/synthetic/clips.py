@@ -30,7 +30,12 @@ from jmocap.data.synthetic.keypoints import Corruption, corrupt_keypoints
 from jmocap.data.synthetic.motion import check_motion
 from jmocap.data.synthetic.physics import PhysicsConfig, simulate_tracking
 from jmocap.data.synthetic.plan import MOTION_KINDS
-from jmocap.data.synthetic.repertoire import SEGMENTS, generate_motion
+from jmocap.data.synthetic.repertoire import (
+    CLASSIC_KINDS,
+    EXTENDED_KINDS,
+    SEGMENTS,
+    generate_motion,
+)
 from jmocap.layouts import CONTACT_SITES, get_layout
 
 GENERATOR = "jmocap.data.synthetic/1"
@@ -38,7 +43,11 @@ GENERATOR = "jmocap.data.synthetic/1"
 
 @dataclass(frozen=True)
 class SynthConfig:
-    """What :func:`generate_clip` makes. ``frames`` is a clip length or a (min, max) range."""
+    """What :func:`generate_clip` makes. ``frames`` is a clip length or a (min, max) range.
+
+    ``extended`` turns on the extended generator's variation inside the motion segments and,
+    when ``kinds`` is None, draws from all of :data:`~.repertoire.EXTENDED_KINDS`;
+    :meth:`extended_generator` is the whole extended distribution (docs/data.md)."""
 
     frames: int | tuple[int, int] = (150, 300)
     fps: float = 30.0
@@ -50,6 +59,16 @@ class SynthConfig:
     corruption: Corruption = field(default_factory=Corruption)
     physics_cfg: PhysicsConfig = field(default_factory=PhysicsConfig)
     max_attempts: int = 12
+    extended: bool = False
+
+    @classmethod
+    def extended_generator(cls, **changes) -> SynthConfig:
+        """The extended generator (issue 15 item 1): everyday motions (bend, crouch, reach)
+        beside the classic ones, gestures and speed changes while walking, subjects 1.45-2.0 m,
+        :meth:`CameraConfig.extended` cameras and :meth:`Corruption.extended` occlusions."""
+        base = cls(extended=True, height_m=(1.45, 2.0), camera=CameraConfig.extended(),
+                   corruption=Corruption.extended())
+        return dataclasses.replace(base, **changes)
 
     def to_json(self) -> dict:
         return _jsonable(dataclasses.asdict(self))
@@ -91,7 +110,7 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
     """:func:`generate_clip` and the :class:`~jmocap.data.synthetic.character.Character` whose
     model its ground truth ``gt_q`` is a motion of (the synthetic IMUs are computed on it)."""
     layout = get_layout(config.layout)
-    kinds = tuple(config.kinds) if config.kinds else tuple(SEGMENTS)
+    kinds = tuple(config.kinds) if config.kinds else (EXTENDED_KINDS if config.extended else CLASSIC_KINDS)
     for k in kinds:
         if k not in SEGMENTS:
             raise ValueError(f"unknown motion kind {k!r}; known: {sorted(SEGMENTS)}")
@@ -104,7 +123,8 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
             raise ValueError(f"frames per clip must be >= 2, got {T}")
         height = round(float(rng.uniform(*config.height_m)), 2)
         try:
-            motion = generate_motion(height, rng, T / config.fps + 0.5, config.fps, kinds)
+            motion = generate_motion(height, rng, T / config.fps + 0.5, config.fps, kinds,
+                                     extended=config.extended)
             check_motion(motion)
             if motion.num_frames < T:
                 raise GenerationError("motion shorter than the clip")

@@ -33,6 +33,14 @@ class Corruption:
     Confidences: clean joints draw from ``conf_clean`` and lose up to 0.3 with their noise
     (relative to 3 std); outliers draw from ``conf_outlier``, swapped joints from
     ``conf_swap``.
+
+    *Occlusion bursts* (off by default; the extended generator's :meth:`extended`): an event
+    starts at a frame with probability ``occlusion_prob`` and lasts ``occlusion_burst`` frames
+    on average; it hides one limb (an arm: shoulder, elbow, wrist; a leg: knee, ankle, foot
+    points) or, with probability ``occlusion_side``, one whole side (arm and leg), as a body
+    part behind the torso or an object does. Each hidden joint-frame is dropped (confidence 0)
+    with probability ``occlusion_drop``, else guessed by the detector: extra noise of std
+    ``occlusion_noise_rel`` * person height and a confidence from ``conf_occluded``.
     """
 
     noise_px: float = 1.5
@@ -50,6 +58,18 @@ class Corruption:
     conf_clean: tuple[float, float] = (0.75, 0.98)
     conf_outlier: tuple[float, float] = (0.1, 0.5)
     conf_swap: tuple[float, float] = (0.3, 0.7)
+    occlusion_prob: float = 0.0
+    occlusion_burst: float = 12.0
+    occlusion_side: float = 0.3
+    occlusion_drop: float = 0.5
+    occlusion_noise_rel: float = 0.04
+    conf_occluded: tuple[float, float] = (0.05, 0.4)
+
+    @classmethod
+    def extended(cls) -> Corruption:
+        """The extended generator's corruption: the default one plus occlusion bursts (about
+        one every 6 s at 30 fps, 0.4 s long on average)."""
+        return cls(occlusion_prob=0.006)
 
     @classmethod
     def none(cls) -> Corruption:
@@ -72,6 +92,37 @@ def _bursts(rng, T, p_frac, mean_len, shape):
         t = i[0]
         L = lengths[tuple(i)]
         out[(slice(t, t + L),) + tuple(i[1:])] = True
+    return out
+
+
+SIDE_PREFIXES = ("left", "right")
+_ARM = ("shoulder", "elbow", "wrist")
+_LEG = ("knee", "ankle", "foot", "toe", "heel")
+
+
+def _side_of(name: str) -> str | None:
+    """'left' / 'right' for a layout's joint name (BODY_25 ``LKnee``, COCO ``left_knee``,
+    Human3.6M ``LKnee``), else None."""
+    n = name.lower()
+    if n.startswith("left") or (name[:1] == "L" and name[1:2].isupper()):
+        return "left"
+    if n.startswith("right") or (name[:1] == "R" and name[1:2].isupper()):
+        return "right"
+    return None
+
+
+def _limb_groups(names) -> dict:
+    """Joint indices of each (side, "arm" | "leg") of a layout's joint ``names``."""
+    out = {(sd, part): [] for sd in SIDE_PREFIXES for part in ("arm", "leg")}
+    for j, raw in enumerate(names):
+        sd = _side_of(raw)
+        if sd is None:
+            continue
+        n = raw.lower()
+        if any(k in n for k in _ARM):
+            out[(sd, "arm")].append(j)
+        elif any(k in n for k in _LEG):
+            out[(sd, "leg")].append(j)
     return out
 
 
@@ -132,8 +183,34 @@ def corrupt_keypoints(rng: np.random.Generator, uv: np.ndarray, layout, image_si
                 t += 1
         if swapped.any():
             conf[swapped] = rng.uniform(*c.conf_swap, size=int(swapped.sum()))
+    # occlusion bursts
+    n_occ = 0
+    occluded = np.zeros((T, J), bool)
+    if c.occlusion_prob > 0:
+        groups = _limb_groups(layout.joints)
+        t = 0
+        while t < T:
+            if rng.uniform() < c.occlusion_prob:
+                L = int(rng.geometric(1.0 / max(c.occlusion_burst, 1.0)))
+                side = SIDE_PREFIXES[int(rng.integers(2))]
+                if rng.uniform() < c.occlusion_side:
+                    idx = groups[(side, "arm")] + groups[(side, "leg")]
+                else:
+                    idx = groups[(side, str(rng.choice(["arm", "leg"])))]
+                occluded[t:t + L, idx] = True
+                n_occ += 1
+                t += L
+            else:
+                t += 1
+        if occluded.any():
+            n = int(occluded.sum())
+            ti = np.nonzero(occluded)[0]
+            kp[occluded, :2] += rng.normal(size=(n, 2)) * (c.occlusion_noise_rel * ph[ti])[:, None]
+            conf[occluded] = rng.uniform(*c.conf_occluded, size=n)
     # drops
     drop = _bursts(rng, T, c.drop_prob, c.drop_burst, (J,))
+    if occluded.any():
+        drop |= occluded & (rng.uniform(size=(T, J)) < c.occlusion_drop)
     if c.drop_outside:
         x, y = kp[..., 0], kp[..., 1]
         drop |= (x < 0) | (x >= W) | (y < 0) | (y >= H)
@@ -143,6 +220,8 @@ def corrupt_keypoints(rng: np.random.Generator, uv: np.ndarray, layout, image_si
     kp[drop, :2] = 0.0
     stats = dict(dropped=float(drop.mean()), outliers=int(out_mask.sum()), swap_events=n_swaps,
                  noise_std_px=float(np.mean(sigma)))
+    if c.occlusion_prob > 0:
+        stats.update(occlusion_events=n_occ, occluded=float(occluded.mean()))
     return kp.astype(np.float32), stats
 
 

@@ -19,7 +19,10 @@ from jmocap.data.synthetic.character import SIDES, Character
 from jmocap.data.synthetic.curves import _Track
 from jmocap.data.synthetic.errors import GenerationError
 
-MOTION_KINDS = ("walk", "run", "jump", "squat", "lunge", "kick", "stand", "dance")
+MOTION_KINDS = ("walk", "run", "jump", "squat", "lunge", "kick", "stand", "dance", "bend", "crouch", "reach")
+"""Every segment kind; a frame's ``Motion.kind`` indexes this tuple (append only: the archives'
+``kind`` indices stay valid). The first eight are the classic generator's, the last three
+the extended generator's everyday motions (:mod:`~.repertoire`)."""
 
 
 @dataclass
@@ -62,8 +65,9 @@ class Segment:
 class Plan:
     """A motion under construction: stances of both feet, segments, weight pins."""
 
-    def __init__(self, ch: Character, rng: np.random.Generator, style: dict):
+    def __init__(self, ch: Character, rng: np.random.Generator, style: dict, extended: bool = False):
         self.ch = ch
+        self.extended = extended  # the extended generator: segments add their extra variation
         self.rng = rng
         self.style = style
         self.t = 0.0

@@ -28,7 +28,7 @@ from jmocap.data.synthetic.curves import (
     _wrap,
 )
 from jmocap.data.synthetic.motion import Motion, _realize
-from jmocap.data.synthetic.plan import MOTION_KINDS, Plan, Pose, _neutral, _upper_names
+from jmocap.data.synthetic.plan import Plan, Pose, _neutral, _upper_names
 from jmocap.data.synthetic.rotations import _rx, _ry
 
 
@@ -204,11 +204,16 @@ def seg_locomotion(plan: Plan, run: bool = False, backward: bool = False):
     # per-step speeds: ramp up over the first steps, down over the last ones
     n_ramp = max(2, int(math.ceil(v / (0.75 * math.sqrt(s)))))
     n = max(n, 2 * n_ramp + 2)
+    v_late, k_change = v, n + 1
+    if plan.extended and rng.uniform() < 0.4:  # a change of speed half-way
+        v_late = v * float(rng.uniform(0.5, 1.6))
+        k_change = n // 2
     speeds = []
     for k in range(1, n + 1):
         up = min(1.0, k / (n_ramp + 1))
         down = min(1.0, (n - k + 0.5) / (n_ramp + 0.5))
-        vk = max(0.45 * math.sqrt(s), v * min(up, down))
+        vt = v + (v_late - v) * float(_smoothstep(np.array((k - k_change) / 3.0)))
+        vk = max(0.45 * math.sqrt(s), vt * min(up, down))
         speeds.append(vk)
     mid = plan.mid()
     P_prev = np.array(mid)
@@ -294,6 +299,13 @@ def seg_locomotion(plan: Plan, run: bool = False, backward: bool = False):
     z_rest = plan.z_rest
     z_loco = z_rest - 0.015 * s if not run else z_rest - 0.03 * s
     run_elbow = float(rng.uniform(1.2, 1.6))
+    carry = None  # the extended generator: an arm task independent of the gait
+    if plan.extended and rng.uniform() < 0.5:
+        dur = steps[-1]["land"] - steps[0]["lift"]
+        ga = steps[0]["lift"] + float(rng.uniform(0.0, 0.4)) * dur
+        gb = ga + float(rng.uniform(0.3, 0.7)) * dur
+        carry = (ga, gb, str(rng.choice(["phone", "carry", "wave", "point", "look", "cross", "hips"])),
+                 SIDES[int(rng.integers(2))], rng.uniform(0, 1, 4))
 
     def fn(t):
         env = _window(t, env_a, env_b, 0.5)
@@ -303,14 +315,35 @@ def seg_locomotion(plan: Plan, run: bool = False, backward: bool = False):
         roll = env * A_roll * np.sin(phase)
         pitch = env * (lean + tilt)
         P = _neutral(plan, len(t))
-        P.arm("left", fwd=-env * A_arm * c)
-        P.arm("right", fwd=env * A_arm * c)
+        keep = {"left": 1.0, "right": 1.0}  # how much of each arm's swing is left
+        if carry is not None:
+            ga, gb, name, side, vals = carry
+            w = _window(t, ga, gb, min(0.5, (gb - ga) / 3))
+            arms = SIDES if name in ("carry", "cross", "hips") else (side,)
+            for sd in arms:
+                keep[sd] = 1.0 - w
+            if name == "phone":  # hand at the ear
+                P.arm(side, down=w * (0.9 - st["arm_down"]), fwd=w * (0.5 - st["arm_fwd"]),
+                      elbow=w * (2.3 - st["elbow"]), twist=-w * 0.4)
+            elif name == "carry":  # a box held in front
+                for sd in SIDES:
+                    P.arm(sd, down=w * (1.2 - st["arm_down"]), fwd=w * (0.45 - st["arm_fwd"]),
+                          elbow=w * (1.4 - st["elbow"]), twist=w * 0.5)
+            elif name in ("wave", "point", "look", "cross", "hips"):
+                sub = Pose(P.names, len(t))
+                m = (t >= ga) & (t <= gb)
+                _gesture(plan, sub, np.where(m, t - ga, 0.0), gb - ga, name, side, vals)
+                for k in P.v:
+                    P.v[k] = P.v[k] + np.where(m, sub.v[k], 0.0)
+        kl, kr = keep["left"], keep["right"]
+        P.arm("left", fwd=-env * A_arm * c * kl)
+        P.arm("right", fwd=env * A_arm * c * kr)
         if run:
-            P.arm("left", elbow=env * (run_elbow - st["elbow"] + 0.25 * c), down=-env * 0.15)
-            P.arm("right", elbow=env * (run_elbow - st["elbow"] - 0.25 * c), down=-env * 0.15)
+            P.arm("left", elbow=kl * env * (run_elbow - st["elbow"] + 0.25 * c), down=-kl * env * 0.15)
+            P.arm("right", elbow=kr * env * (run_elbow - st["elbow"] - 0.25 * c), down=-kr * env * 0.15)
         else:
-            P.arm("left", elbow=env * 0.15 * A_arm * (1 + c))
-            P.arm("right", elbow=env * 0.15 * A_arm * (1 - c))
+            P.arm("left", elbow=kl * env * 0.15 * A_arm * (1 + c))
+            P.arm("right", elbow=kr * env * 0.15 * A_arm * (1 - c))
         P.spine(twist=env * 0.8 * A_rot * c, flex=env * (lean * 0.5 - tilt))
         P.neck(turn=-env * 0.2 * A_rot * c, flex=-env * lean)
         z = z_rest + (z_loco - z_rest) * _window(t, t0, t_end, 0.4)
@@ -733,6 +766,241 @@ def seg_dance(plan: Plan):
     plan.heading = end_heading
 
 
+# -- the extended generator's everyday motions (issue 15 item 1) ---------------------------
+
+def _heel_rise(plan: Plan, phi: float) -> float:
+    """How far the ankles rise when both heels lift by ``phi`` about the balls of the feet."""
+    ch = plan.ch
+    G = np.zeros(3)
+    return float(ch.stance_pose(0, G, np.array(phi))[1][2] - ch.stance_pose(0, G, np.array(0.0))[1][2])
+
+
+def _rep_knots(t_start, reps, T_down, T_hold, T_up, gaps):
+    """Profile knots 0 -> 1 (hold) -> 0 for each repetition; returns (knots, end time)."""
+    knots = [(t_start - 1.0, 0.0), (t_start, 0.0)]
+    a = t_start
+    for r in range(reps):
+        knots += [(a + T_down, 1.0), (a + T_down + T_hold, 1.0), (a + T_down + T_hold + T_up, 0.0)]
+        a += T_down + T_hold + T_up + gaps[r]
+    return knots, a
+
+
+def _set_stance(plan: Plan, mid, heading, width, stagger, t, foot_first):
+    """Step both feet (one after the other) to a stance of ``width`` about ``mid``, the first
+    foot ``stagger`` ahead; returns the time after the second step."""
+    for f, fwd in ((foot_first, stagger), (1 - foot_first, 0.0)):
+        _step_to(plan, f, _place(mid, heading, _sgn(f), width, plan.style["toe_out"], forward=fwd), t,
+                 dur=0.4, clear=0.04)
+        t += 0.6
+    return t
+
+
+def seg_bend(plan: Plan):
+    """Bending down to the floor and back up: picking something up or putting it down, by a
+    stoop (knees nearly straight, trunk and hips flexed) or a squat-lift (knees deep, back
+    bent), one or both hands reaching to just above the floor in front of the feet, 1-2 times;
+    the feet first move to a wider or staggered stance half of the time."""
+    ch, rng, st = plan.ch, plan.rng, plan.style
+    s = ch.scale
+    t0 = plan.t
+    feet = plan.feet()
+    heading = _heading_of(feet)
+    mid = plan.mid()
+    t = t0 + float(rng.uniform(0.2, 0.5))
+    moved = rng.uniform() < 0.5
+    first = int(rng.integers(2))
+    if moved:
+        t = _set_stance(plan, mid, heading, float(rng.uniform(0.2, 0.36)) * s,
+                        float(rng.uniform(-0.05, 0.25)) * s, t, first)
+    stoop = rng.uniform() < 0.5
+    if stoop:
+        pitch_max = float(rng.uniform(0.75, 1.25))
+        flex_max = float(rng.uniform(0.45, 1.0))
+        depth = float(rng.uniform(0.02, 0.1)) * s
+    else:
+        pitch_max = float(rng.uniform(0.4, 0.8))
+        flex_max = float(rng.uniform(0.3, 0.7))
+        depth = float(rng.uniform(0.22, 0.38)) * s
+    reps = int(rng.integers(1, 3))
+    T_down, T_up = float(rng.uniform(0.7, 1.4)), float(rng.uniform(0.7, 1.5))
+    T_hold = float(rng.uniform(0.2, 1.0))
+    knots, t_after = _rep_knots(t + 0.1, reps, T_down, T_hold, T_up, rng.uniform(0.3, 0.9, reps))
+    hands = str(rng.choice(["both", "left", "right"]))
+    reach = float(rng.uniform(0.0, 0.35))
+    t = t_after
+    if moved:
+        t = _set_stance(plan, mid, heading, st["width"], 0.0, t + 0.1, first)
+    t_end = t + float(rng.uniform(0.2, 0.5))
+    plan.lam_pins.append((t_end, 0.5))
+    z_rest = plan.z_rest
+
+    def fn(tt):
+        prof = np.clip(_keys(tt, knots), 0, 1)
+        P = _neutral(plan, len(tt))
+        # an arm hanging straight down from a trunk pitched by (pitch + flex) swings forward by
+        # that angle relative to the trunk; ``reach`` takes the hand further ahead of the feet
+        down_fwd = pitch_max + flex_max + reach
+        for sd in SIDES:
+            if hands == "both" or hands == sd:
+                P.arm(sd, fwd=prof * (down_fwd - st["arm_fwd"]), elbow=prof * (0.1 - st["elbow"]),
+                      down=prof * (1.45 - st["arm_down"]))
+            else:
+                P.arm(sd, fwd=prof * 0.5 * pitch_max, elbow=prof * 0.6)
+        P.spine(flex=prof * flex_max)
+        P.neck(flex=-prof * 0.5 * (pitch_max + flex_max) * 0.4)
+        return dict(z=z_rest - depth * prof, yaw=np.full(len(tt), heading), pitch=prof * pitch_max,
+                    upper=P.array())
+
+    plan.add_segment("bend", t0, t_end, fn, stoop=bool(stoop), reps=reps)
+
+
+def seg_crouch(plan: Plan):
+    """Crouching low and holding it: a deep crouch on the balls of the feet (heels up) or a
+    flat-footed one, arms on the knees, forward to the floor or free, looking around, then
+    standing up; the feet usually widen first."""
+    ch, rng, st = plan.ch, plan.rng, plan.style
+    s = ch.scale
+    t0 = plan.t
+    feet = plan.feet()
+    heading = _heading_of(feet)
+    mid = plan.mid()
+    first = int(rng.integers(2))
+    t = t0 + float(rng.uniform(0.2, 0.5))
+    widen = rng.uniform() < 0.75
+    if widen:
+        t = _set_stance(plan, mid, heading, float(rng.uniform(0.22, 0.4)) * s,
+                        float(rng.uniform(-0.1, 0.15)) * s, t, first)
+    toes = rng.uniform() < 0.6
+    if toes:
+        depth = float(rng.uniform(0.32, 0.44)) * s
+        heel = float(rng.uniform(0.5, 0.9))
+    else:
+        depth = float(rng.uniform(0.24, 0.33)) * s
+        heel = 0.0
+    T_down, T_hold, T_up = float(rng.uniform(0.8, 1.5)), float(rng.uniform(0.8, 2.5)), float(rng.uniform(0.8, 1.5))
+    a = t + 0.1
+    b, c_ = a + T_down, a + T_down + T_hold
+    d = c_ + T_up
+    knots = [(a - 1.0, 0.0), (a, 0.0), (b, 1.0), (c_, 1.0), (d, 0.0)]
+    if toes:
+        for f in (0, 1):
+            plan.stance(f).phi += [(a + 0.2 * T_down, 0.0), (b, heel), (c_, heel), (d - 0.2 * T_up, 0.0)]
+    t = d + 0.1
+    if widen:
+        t = _set_stance(plan, mid, heading, st["width"], 0.0, t, first)
+    t_end = t + float(rng.uniform(0.2, 0.5))
+    share = float(rng.uniform(0.4, 0.6))
+    plan.lam_pins += [(b, share), (c_, share), (t_end, 0.5)]
+    arms = str(rng.choice(["knees", "floor", "free", "hug"]))
+    look = float(rng.uniform(-0.8, 0.8))
+    lean = float(rng.uniform(0.35, 0.7))
+    z_rest = plan.z_rest
+
+    def fn(tt):
+        prof = np.clip(_keys(tt, knots), 0, 1)
+        hold = _window(tt, b, c_, 0.3)
+        P = _neutral(plan, len(tt))
+        for sd in SIDES:
+            if arms == "knees":
+                P.arm(sd, fwd=prof * (1.0 - st["arm_fwd"]), elbow=prof * (0.9 - st["elbow"]))
+            elif arms == "floor":
+                P.arm(sd, fwd=prof * (0.7 + lean - st["arm_fwd"]), elbow=prof * (0.3 - st["elbow"]))
+            elif arms == "hug":
+                P.arm(sd, fwd=prof * (1.3 - st["arm_fwd"]), elbow=prof * (1.9 - st["elbow"]), twist=0.4 * prof)
+            else:
+                P.arm(sd, fwd=prof * 0.6, elbow=prof * 0.5)
+        P.spine(flex=prof * 0.5 * lean)
+        P.neck(flex=-prof * 0.35, turn=hold * look * np.sin(np.pi * np.clip((tt - b) / max(c_ - b, 1e-3), 0, 1)))
+        return dict(z=z_rest - depth * prof, yaw=np.full(len(tt), heading), pitch=prof * lean,
+                    upper=P.array())
+
+    plan.add_segment("crouch", t0, t_end, fn, on_toes=bool(toes), depth=depth)
+
+
+def seg_reach(plan: Plan):
+    """Reaching: up high on the toes (one or both arms overhead), out to the side over a wide
+    step with the weight shifted onto that foot and the trunk bent sideways, or forward and
+    down over a forward step; held, then back to standing."""
+    ch, rng, st = plan.ch, plan.rng, plan.style
+    s = ch.scale
+    t0 = plan.t
+    feet = plan.feet()
+    heading = _heading_of(feet)
+    kind = str(rng.choice(["high", "side", "forward"], p=[0.4, 0.3, 0.3]))
+    A = int(rng.integers(2))  # the reaching side (and, for side/forward, the stepping foot)
+    side = SIDES[A]
+    T_in, T_hold, T_out = float(rng.uniform(0.6, 1.1)), float(rng.uniform(0.3, 1.5)), float(rng.uniform(0.6, 1.1))
+    t = t0 + float(rng.uniform(0.2, 0.5))
+    both = rng.uniform() < 0.4
+    rise = z_lat = 0.0
+    pitch_max = roll_max = flex = lat = 0.0
+    G_home = feet[A].copy()
+    if kind == "high":
+        phi = float(rng.uniform(0.25, 0.6))
+        rise = 0.85 * _heel_rise(plan, phi)
+        a = t
+        b, c_ = a + T_in, a + T_in + T_hold
+        d = c_ + T_out
+        for f in (0, 1):
+            plan.stance(f).phi += [(a, 0.0), (b, phi), (c_, phi), (d, 0.0)]
+        lat = -_sgn(A) * float(rng.uniform(0.0, 0.15))
+        t_back = d
+    else:
+        c, sn = math.cos(heading), math.sin(heading)
+        if kind == "side":
+            dist = float(rng.uniform(0.25, 0.45)) * s
+            G_new = G_home + np.array([-sn * _sgn(A) * dist, c * _sgn(A) * dist, 0.0])
+            lat = -_sgn(A) * float(rng.uniform(0.15, 0.35))  # bend towards the reaching side
+            roll_max = -_sgn(A) * float(rng.uniform(0.05, 0.12))
+            z_lat = float(rng.uniform(0.03, 0.1)) * s
+        else:
+            dist = float(rng.uniform(0.3, 0.55)) * s
+            G_new = G_home + np.array([c * dist, sn * dist, 0.0])
+            pitch_max = float(rng.uniform(0.3, 0.7))
+            flex = float(rng.uniform(0.2, 0.5))
+            z_lat = float(rng.uniform(0.06, 0.16)) * s
+        _step_to(plan, A, G_new, t, dur=0.45, clear=0.05)
+        a = t + 0.5
+        b, c_ = a + T_in, a + T_in + T_hold
+        d = c_ + T_out
+        share = float(rng.uniform(0.65, 0.8))
+        lamL = share if A == 0 else 1 - share
+        plan.lam_pins += [(b, lamL), (c_, lamL)]
+        t_back = d + 0.05
+        _step_to(plan, A, G_home, t_back, dur=0.45, clear=0.05)
+        t_back += 0.5
+    t_end = t_back + float(rng.uniform(0.25, 0.5))
+    plan.lam_pins.append((t_end, 0.5))
+    knots = [(a - 1.0, 0.0), (a, 0.0), (b, 1.0), (c_, 1.0), (d, 0.0)]
+    wiggle = float(rng.uniform(0.0, 0.25))
+    z_rest = plan.z_rest
+
+    def fn(tt):
+        prof = np.clip(_keys(tt, knots), 0, 1)
+        hold = _window(tt, b, c_, 0.25)
+        osc = wiggle * hold * np.sin(2 * np.pi * 1.2 * (tt - b))
+        P = _neutral(plan, len(tt))
+        for sd in SIDES:
+            reaching = sd == side or both
+            if kind == "high" and reaching:
+                P.arm(sd, down=prof * (-1.3 - st["arm_down"]) + osc * 0.3, fwd=prof * 0.2,
+                      elbow=prof * (0.05 - st["elbow"]))
+            elif kind == "side" and reaching:
+                P.arm(sd, down=prof * (-0.1 - st["arm_down"]) + osc * 0.3, fwd=prof * 0.3,
+                      elbow=prof * (0.05 - st["elbow"]))
+            elif kind == "forward" and reaching:
+                P.arm(sd, fwd=prof * (1.0 + pitch_max + flex - st["arm_fwd"]) + osc * 0.3,
+                      elbow=prof * (0.05 - st["elbow"]))
+            elif kind == "side":
+                P.arm(sd, down=prof * (0.8 - st["arm_down"]))
+        P.spine(flex=prof * flex, lat=prof * lat)
+        P.neck(flex=prof * (-0.45 if kind == "high" else 0.1))
+        return dict(z=z_rest + prof * rise - prof * z_lat, yaw=np.full(len(tt), heading),
+                    pitch=prof * pitch_max, roll=prof * roll_max, upper=P.array())
+
+    plan.add_segment("reach", t0, t_end, fn, reach=kind)
+
+
 SEGMENTS: dict[str, Callable[[Plan], None]] = {
     "stand": lambda plan: seg_stand(plan),
     "walk": lambda plan: seg_locomotion(plan, backward=plan.rng.uniform() < 0.25),
@@ -742,24 +1010,34 @@ SEGMENTS: dict[str, Callable[[Plan], None]] = {
     "lunge": seg_lunge,
     "kick": seg_kick,
     "dance": seg_dance,
+    "bend": seg_bend,
+    "crouch": seg_crouch,
+    "reach": seg_reach,
 }
+CLASSIC_KINDS = ("stand", "walk", "run", "jump", "squat", "lunge", "kick", "dance")
+"""The kinds the classic generator draws from, in its draw order (the default of
+``generate_motion``; the archives documented before the extended generator are made of these)."""
+EXTENDED_KINDS = tuple(SEGMENTS)
+"""The extended generator's kinds: the classic ones and the everyday bend, crouch and reach."""
 
 
 def generate_motion(
     height_m: float, rng: np.random.Generator, duration: float, fps: float = 30.0,
-    kinds: Sequence[str] | None = None,
+    kinds: Sequence[str] | None = None, extended: bool = False,
 ) -> Motion:
-    """Plan and solve one kinematic motion of at least ``duration`` seconds (uncropped)."""
+    """Plan and solve one kinematic motion of at least ``duration`` seconds (uncropped).
+    ``extended``: the extended generator's variation inside the segments (gestures and speed
+    changes while walking; the default kinds then are :data:`EXTENDED_KINDS`)."""
     ch = character(height_m)
     style = _style(rng, ch)
-    plan = Plan(ch, rng, style)
+    plan = Plan(ch, rng, style, extended=extended)
     plan.upper_names = _upper_names(ch)
     heading = float(rng.uniform(-np.pi, np.pi))
     x0, y0 = rng.uniform(-1.0, 1.0, 2)
     feet = [_place((x0, y0), heading, _sgn(f), style["width"], style["toe_out"]) for f in (0, 1)]
     plan.start(feet, heading, style["alpha"])
     seg_stand(plan, float(rng.uniform(0.4, 0.9)), gestures=False)
-    kinds = list(kinds or [k for k in MOTION_KINDS if k in SEGMENTS])
+    kinds = list(kinds or (EXTENDED_KINDS if extended else CLASSIC_KINDS))
     while plan.t < duration:
         kind = kinds[int(rng.integers(len(kinds)))]
         SEGMENTS[kind](plan)
