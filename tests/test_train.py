@@ -156,3 +156,40 @@ def test_init_and_cosine_schedule(xla_cache, archive, tmp_path):
     with pytest.raises(ValueError, match="tpnet"):
         train(dataclasses.replace(ft, out=str(tmp_path / "wide"), cycle=wide), progress=False,
               data=TrainingSet.load(first.data, dataclasses.replace(first, cycle=wide)))
+
+
+def test_validation_best_parameters_and_early_stopping(xla_cache, archive, tmp_path):
+    """``val_data``: TPNet's root-relative MPJPE on fixed windows is logged every ``val_every``
+    steps of a TPNet stage (not of the others), equals the mean joint distance computed here in
+    numpy from TPNet's output on the same windows, the best parameters are written, and with
+    ``patience`` a stage that stops improving ends early (a zero learning rate: the second check
+    cannot improve on the first) and the run goes on with the next stage."""
+    from jmocap.methods.stages import target_pose
+    from jmocap.train import _inputs, _validation_windows
+
+    stages = (StageConfig("tpnet", 6, 0.0, 2, 4), StageConfig("grfnet", 2, 1e-3, 2, 3, cycle={"use_dynet": False}))
+    config = dataclasses.replace(_config(archive, tmp_path / "v", stages=stages), val_data=(str(archive),),
+                                 val_every=1, val_windows=4, patience=1)
+    data = TrainingSet.load(config.data, config)
+    params = train(config, progress=False, data=data)
+    log = [json.loads(line) for line in (tmp_path / "v" / "log.jsonl").read_text().splitlines()]
+    vals = [r for r in log if "val_mpjpe_mm" in r]
+    assert [(r["stage"], r["step"]) for r in vals] == [("tpnet", 1), ("tpnet", 2)]
+    assert vals[0]["val_mpjpe_mm"] == vals[1]["val_mpjpe_mm"] == vals[1]["best_mm"]
+    assert [r for r in log if r.get("early_stop")] == [{"stage": "tpnet", "step": 2, "early_stop": True, "best_step": 1}]
+    assert [r["step"] for r in log if r["stage"] == "grfnet" and "loss" in r] == [1, 2]  # the next stage ran
+    best = load_params(tmp_path / "v" / "params_best.msgpack")
+    for a, b in zip(_leaves(best["tpnet"]), _leaves(params["tpnet"]), strict=True):
+        np.testing.assert_array_equal(a, b)
+    # the logged number, recomputed
+    errs, frames = [], 0
+    for model, d in _validation_windows(data, 4, 2, 4):
+        for i in range(d["mask"].shape[0]):
+            m = jax.tree.map(lambda x, i=i: x[i], model)
+            di = {k: v[i] for k, v in d.items()}
+            tp = target_pose(params, m, _inputs(di), SMALL, train=False)
+            gt = (di["gt_kp3d"] - di["gt_q"][:, None, :3]) @ di["extrinsics"][:3, :3].T
+            e = np.linalg.norm(np.asarray(tp.p_rr) - gt, axis=-1).mean(-1)
+            errs.append(float(np.sum(e * di["mask"])))
+            frames += int(di["mask"].sum())
+    np.testing.assert_allclose(vals[0]["val_mpjpe_mm"], 1000 * sum(errs) / frames, rtol=1e-4)

@@ -98,6 +98,15 @@ class TrainConfig:
     # a parameter file (msgpack, e.g. a previous run's params_tpnet.msgpack) whose networks
     # replace the fresh initialisation of those networks when a run starts (not when it resumes)
     init: str | None = None
+    # validation: every ``val_every`` steps of a stage that trains TPNet (and at its end),
+    # TPNet's root-relative MPJPE (mm) on ``val_windows`` fixed windows of the ``val_data``
+    # archives (clips never trained on), logged as ``val_mpjpe_mm``; the best parameters of the
+    # run are kept in ``params_best.msgpack``; ``patience`` > 0 ends a stage early after that
+    # many checks without improvement and goes on from the best parameters
+    val_data: tuple[str, ...] = ()
+    val_every: int = 250
+    val_windows: int = 64
+    patience: int = 0
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -105,10 +114,11 @@ class TrainConfig:
     @staticmethod
     def from_json(d: dict) -> TrainConfig:
         d = dict(d)
-        if isinstance(d.get("data"), str):
-            d["data"] = (d["data"],)
-        elif "data" in d:
-            d["data"] = tuple(d["data"])
+        for k in ("data", "val_data"):
+            if isinstance(d.get(k), str):
+                d[k] = (d[k],)
+            elif k in d:
+                d[k] = tuple(d[k])
         if "stages" in d:
             d["stages"] = tuple(StageConfig(**s) for s in d["stages"])
         if "cycle" in d:
@@ -291,6 +301,33 @@ def stage_loss(params, model, d, key, stage: str, config: PhysCapConfig, truncat
     return total, terms
 
 
+def make_validation(config: PhysCapConfig):
+    """``f(params, model, data) -> (sum of per-frame MPJPE in m, frames)`` of TPNet (no
+    dropout) over a batch of windows: the root-relative joint error of ``tpnet_losses``' L_3D
+    (camera axes, all the layout's joints, the mask's frames)."""
+
+    def one(params, model, d):
+        tp = target_pose(params, model, _inputs(d), config, train=False)
+        R = d["extrinsics"][:3, :3]
+        p_rr_gt = (d["gt_kp3d"] - d["gt_q"][:, None, :3]) @ R.T
+        err = jnp.linalg.norm(tp.p_rr - p_rr_gt, axis=-1).mean(-1)
+        return jnp.sum(err * d["mask"]), jnp.sum(d["mask"])
+
+    @jax.jit
+    def batch(params, model, data):
+        s, n = jax.vmap(lambda m, d: one(params, m, d))(model, data)
+        return s.sum(), n.sum()
+
+    return batch
+
+
+def _validation_windows(val: TrainingSet, windows: int, batch: int, frames: int):
+    """Fixed (seeded) validation batches of ``frames``-frame windows, BODY_25 as recorded."""
+    rng = np.random.default_rng(20261204)
+    plain = dataclasses.replace(val, layout_mix=())
+    return [plain.sample(rng, batch, frames) for _ in range(max(1, -(-windows // batch)))]
+
+
 def make_step(stage: StageConfig, config: PhysCapConfig, optimizer, truncate: bool = True):
     def batch_loss(params, model, data, key):
         keys = jax.random.split(key, data["mask"].shape[0])
@@ -342,6 +379,8 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(config.to_json(), indent=2))
     data = TrainingSet.load(config.data, config) if data is None else data
+    val = TrainingSet.load(config.val_data, config) if config.val_data else None
+    validate = make_validation(config.cycle) if val is not None else None
     ckpt_path = out / "checkpoint.msgpack"
     key = jax.random.PRNGKey(config.seed)
     params = init_params(key, data.models[0], config.cycle)
@@ -372,6 +411,10 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
     rng = np.random.default_rng(config.seed + 1000 * state["stage"] + state["step"])
     if ckpt_path.exists() and restored.get("rng"):
         rng.bit_generator.state = json.loads(restored["rng"])
+    # validation bookkeeping (best MPJPE and its stage/step, checks without improvement)
+    vstate = {"best": None, "stage": None, "step": None, "bad": 0}
+    if ckpt_path.exists() and restored.get("val"):
+        vstate = json.loads(restored["val"])
     params = state["params"]
     key = jnp.asarray(state["key"])
     try:
@@ -390,6 +433,10 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
         step_fn = make_step(stage, stage_cycle, optimizer, config.truncate_gradient)
         bar = tqdm(total=stage.steps, initial=start, desc=stage.name, disable=not progress) if tqdm else None
         t0 = time.time()
+        checks = validate is not None and "tpnet" in STAGE_TRAINS[stage.name]
+        vbatches = _validation_windows(val, config.val_windows, stage.batch, stage.frames) if checks else []
+        if start == 0:
+            vstate["bad"] = 0
         for it in range(start, stage.steps):
             model, batch = data.sample(rng, stage.batch, stage.frames)
             key, sub = jax.random.split(key)
@@ -406,9 +453,29 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
             if bar:
                 bar.update(1)
             last = it + 1 == stage.steps
+            if checks and ((it + 1) % config.val_every == 0 or last):
+                tot = [validate(params, m, d) for m, d in vbatches]
+                mpjpe = 1000.0 * float(sum(a for a, _ in tot)) / max(float(sum(b for _, b in tot)), 1.0)
+                improved = vstate["best"] is None or mpjpe < vstate["best"]
+                if improved:
+                    vstate.update(best=mpjpe, stage=stage.name, step=it + 1, bad=0)
+                    save_params(out / "params_best.msgpack", params)
+                else:
+                    vstate["bad"] += 1
+                log.write(json.dumps({"stage": stage.name, "step": it + 1, "val_mpjpe_mm": round(mpjpe, 3),
+                                      "best_mm": round(vstate["best"], 3)}) + "\n")
+                log.flush()
+                if config.patience > 0 and vstate["bad"] >= config.patience and not last:
+                    last = True  # early stop: go on from the best parameters
+                    params = serialization.from_state_dict(params, load_params(out / "params_best.msgpack"))
+                    log.write(json.dumps({"stage": stage.name, "step": it + 1, "early_stop": True,
+                                          "best_step": vstate["step"]}) + "\n")
+                    log.flush()
             if (it + 1) % config.checkpoint_every == 0 or last:
                 nxt = (si + 1, 0) if last else (si, it + 1)
-                _save_checkpoint(ckpt_path, nxt, params, None if last else opt_state, key, rng)
+                _save_checkpoint(ckpt_path, nxt, params, None if last else opt_state, key, rng, vstate)
+            if last:
+                break
         if bar:
             bar.close()
         save_params(out / f"params_{stage.name}.msgpack", params)
@@ -417,9 +484,10 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
     return params
 
 
-def _save_checkpoint(path: Path, stage_step, params, opt_state, key, rng=None) -> None:
+def _save_checkpoint(path: Path, stage_step, params, opt_state, key, rng=None, vstate=None) -> None:
     payload = {
         "rng": "" if rng is None else json.dumps(rng.bit_generator.state),
+        "val": "" if vstate is None else json.dumps(vstate),
         "stage": stage_step[0],
         "step": stage_step[1],
         "params": serialization.to_state_dict(jax.tree.map(np.asarray, params)),
