@@ -60,7 +60,7 @@ def log(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
-def ensure_archive(path: Path, clips: int, seed: int, frames: str, workers: int = 1) -> float:
+def ensure_archive(path: Path, clips: int, seed: int, frames: str, workers: int = 1, extended: bool = False) -> float:
     """Generate (or resume) the training archive; returns the seconds spent."""
     from jmocap.cli import main as jmocap
 
@@ -71,15 +71,16 @@ def ensure_archive(path: Path, clips: int, seed: int, frames: str, workers: int 
         cfg = got.get("config", {})
         lo, hi = (int(x) for x in frames.split(":")) if ":" in frames else (int(frames),) * 2
         want_frames = [lo, hi] if ":" in frames else lo
-        if got.get("seed") != seed or not cfg.get("physics") or cfg.get("frames") != want_frames:
+        if (got.get("seed") != seed or not cfg.get("physics") or cfg.get("frames") != want_frames
+                or bool(cfg.get("extended")) != extended):
             sys.exit(f"{path} was made with seed {got.get('seed')}, frames {cfg.get('frames')}, physics "
-                     f"{cfg.get('physics')}; this run asks for seed {seed}, frames {frames}, physics: "
-                     f"use another --data folder")
+                     f"{cfg.get('physics')}, extended {bool(cfg.get('extended'))}; this run asks for seed "
+                     f"{seed}, frames {frames}, physics, extended {extended}: use another --data folder")
     have = sum(1 for line in manifest.read_text().splitlines() if line.strip()) if manifest.exists() else 0
     if have >= clips:
         return 0.0
     cmd = ["data", "synth", "--out", str(path), "--clips", str(clips), "--seed", str(seed), "--physics",
-           "--frames-per-clip", frames, "--workers", str(workers), "--quiet"]
+           "--frames-per-clip", frames, "--workers", str(workers), "--quiet"] + (["--extended"] if extended else [])
     log("+ jmocap " + " ".join(cmd))
     t0 = time.time()
     if jmocap(cmd) != 0:
@@ -333,6 +334,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=7, help="archive and training seed (never 123)")
     ap.add_argument("--frames-per-clip", default="60:150",
                     help="clip lengths (short clips: more subjects and cameras per generated frame)")
+    ap.add_argument("--extended", action="store_true",
+                    help="the archive is the extended generator's (jmocap data synth --extended)")
     ap.add_argument("--run", default="runs/contacts", help="checkpoint, log and outputs")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="generation processes")
     ap.add_argument("--val-fraction", type=float, default=0.15)
@@ -362,7 +365,7 @@ def main(argv=None) -> int:
         sys.exit("data/heldout is the held-out evaluation archive: never train on it")
     run.mkdir(parents=True, exist_ok=True)
     t_start = time.time()
-    gen_s = ensure_archive(data, args.clips, args.seed, args.frames_per_clip, args.workers)
+    gen_s = ensure_archive(data, args.clips, args.seed, args.frames_per_clip, args.workers, args.extended)
     clips = load_clips(data, args.clips)
     tr, va = split(clips, args.val_fraction, args.seed)
     log(f"{len(clips)} clips ({sum(c.num_frames for c in clips)} frames): {len(tr)} train, {len(va)} validation")
@@ -385,7 +388,7 @@ def main(argv=None) -> int:
     summary = {
         "paper": "Rempe et al. 2020, Sec. 3.2 / Appendix A.2",
         "command": "python experiments/train_contacts.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "archive": {"path": args.data, "clips": len(clips), "seed": args.seed, "physics": True,
+        "archive": {"path": args.data, "clips": len(clips), "seed": args.seed, "physics": True, "extended": args.extended,
                     "frames_per_clip": args.frames_per_clip, "frames": int(sum(c.num_frames for c in clips)),
                     "contact_rule": "force_floor"},
         "split": {"train_clips": [c.name for c in tr], "val_clips": [c.name for c in va]},

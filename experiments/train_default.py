@@ -2,12 +2,15 @@
 
     python experiments/train_default.py [--config experiments/configs/default.json] [--ship]
 
-1. Generates the training archive if missing or short (deterministic for its seed):
+1. Generates the config's training (and validation) archives if missing or short
+   (deterministic for their seeds):
    data/contacts_train, 1013 clips of 60-150 frames tracked in MuJoCo simulation (seed 7,
    ``--physics --frames-per-clip 60:150``), the archive the contact estimator trains on
    (``experiments/train_contacts.py`` uses its first 1000); the shipped weights of 2026-12-03
    were trained on these 1013 (earlier weights: 300 kinematic clips of seed 1 and 40 physics
-   clips of seed 2).
+   clips of seed 2). ``configs/tpnet_extended.json`` fine-tunes the shipped weights on
+   data/train_ext (800 clips of the extended generator, ``--extended``, seed 8, simulated)
+   and validates on data/val_ext (48 kinematic clips of seed 78).
 2. Runs the staged training of the config (resumable: re-running continues from
    runs/default/checkpoint.msgpack; progress in runs/default/log.jsonl). The shipped weights of
    2026-12-04 continued the first TPNet stage of a default.json run with
@@ -28,7 +31,12 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-ARCHIVES = (("data/contacts_train", 1013, 7, ["--physics", "--frames-per-clip", "60:150"]),)
+ARCHIVES = (
+    ("data/contacts_train", 1013, 7, ["--physics", "--frames-per-clip", "60:150"]),
+    # the extended generator's training and validation archives (configs/tpnet_extended.json)
+    ("data/train_ext", 800, 8, ["--physics", "--extended", "--frames-per-clip", "60:150", "--workers", "2"]),
+    ("data/val_ext", 48, 78, ["--extended", "--frames-per-clip", "60:150"]),
+)
 
 
 def main(argv=None):
@@ -36,7 +44,11 @@ def main(argv=None):
     ap.add_argument("--config", default=str(ROOT / "experiments/configs/default.json"))
     ap.add_argument("--ship", action="store_true", help="copy the trained weights into the package")
     args = ap.parse_args(argv)
+    cfg_json = json.loads(Path(args.config).read_text())
+    used = set(cfg_json.get("data", [])) | set(cfg_json.get("val_data", []))
     for folder, n, seed, extra in ARCHIVES:
+        if folder not in used:
+            continue
         if not (ROOT / folder / "manifest.jsonl").exists() or len(list((ROOT / folder).glob("*.npz"))) < n:
             cmd = [sys.executable, "-m", "jmocap.cli", "data", "synth", "--out", folder,
                    "--clips", str(n), "--seed", str(seed), "--quiet", *extra]
@@ -46,7 +58,7 @@ def main(argv=None):
     from jmocap.train import TrainConfig, train
     from jmocap.weights import ship_params
 
-    config = TrainConfig.from_json(json.loads(Path(args.config).read_text()))
+    config = TrainConfig.from_json(cfg_json)
     params = train(config)
     if args.ship:
         shipped = config.cycle.replace(**config.ship_cycle)
