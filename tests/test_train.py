@@ -162,8 +162,8 @@ def test_validation_best_parameters_and_early_stopping(xla_cache, archive, tmp_p
     """``val_data``: TPNet's root-relative MPJPE on fixed windows is logged every ``val_every``
     steps of a TPNet stage (not of the others), equals the mean joint distance computed here in
     numpy from TPNet's output on the same windows, the best parameters are written, and with
-    ``patience`` a stage that stops improving ends early (a zero learning rate: the second check
-    cannot improve on the first) and the run goes on with the next stage."""
+    ``patience`` a stage that stops improving ends early (a zero learning rate: the check after
+    the first step cannot improve on the one at the start) and the run goes on with the next stage."""
     from jmocap.methods.stages import target_pose
     from jmocap.train import _inputs, _validation_windows
 
@@ -174,9 +174,9 @@ def test_validation_best_parameters_and_early_stopping(xla_cache, archive, tmp_p
     params = train(config, progress=False, data=data)
     log = [json.loads(line) for line in (tmp_path / "v" / "log.jsonl").read_text().splitlines()]
     vals = [r for r in log if "val_mpjpe_mm" in r]
-    assert [(r["stage"], r["step"]) for r in vals] == [("tpnet", 1), ("tpnet", 2)]
+    assert [(r["stage"], r["step"]) for r in vals] == [("tpnet", 0), ("tpnet", 1)]  # the start, then step 1
     assert vals[0]["val_mpjpe_mm"] == vals[1]["val_mpjpe_mm"] == vals[1]["best_mm"]
-    assert [r for r in log if r.get("early_stop")] == [{"stage": "tpnet", "step": 2, "early_stop": True, "best_step": 1}]
+    assert [r for r in log if r.get("early_stop")] == [{"stage": "tpnet", "step": 1, "early_stop": True, "best_step": 0}]
     assert [r["step"] for r in log if r["stage"] == "grfnet" and "loss" in r] == [1, 2]  # the next stage ran
     best = load_params(tmp_path / "v" / "params_best.msgpack")
     for a, b in zip(_leaves(best["tpnet"]), _leaves(params["tpnet"]), strict=True):

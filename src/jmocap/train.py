@@ -98,7 +98,7 @@ class TrainConfig:
     # a parameter file (msgpack, e.g. a previous run's params_tpnet.msgpack) whose networks
     # replace the fresh initialisation of those networks when a run starts (not when it resumes)
     init: str | None = None
-    # validation: every ``val_every`` steps of a stage that trains TPNet (and at its end),
+    # validation: at the start of a stage that trains TPNet, every ``val_every`` steps and at its end,
     # TPNet's root-relative MPJPE (mm) on ``val_windows`` fixed windows of the ``val_data``
     # archives (clips never trained on), logged as ``val_mpjpe_mm``; the best parameters of the
     # run are kept in ``params_best.msgpack``; ``patience`` > 0 ends a stage early after that
@@ -435,8 +435,25 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
         t0 = time.time()
         checks = validate is not None and "tpnet" in STAGE_TRAINS[stage.name]
         vbatches = _validation_windows(val, config.val_windows, stage.batch, stage.frames) if checks else []
+
+        def check(params, step, vbatches=vbatches, stage=stage):
+            """Validate; returns True when the stage should stop early."""
+            tot = [validate(params, m, d) for m, d in vbatches]
+            mpjpe = 1000.0 * float(sum(a for a, _ in tot)) / max(float(sum(b for _, b in tot)), 1.0)
+            if vstate["best"] is None or mpjpe < vstate["best"]:
+                vstate.update(best=mpjpe, stage=stage.name, step=step, bad=0)
+                save_params(out / "params_best.msgpack", params)
+            else:
+                vstate["bad"] += 1
+            log.write(json.dumps({"stage": stage.name, "step": step, "val_mpjpe_mm": round(mpjpe, 3),
+                                  "best_mm": round(vstate["best"], 3)}) + "\n")
+            log.flush()
+            return config.patience > 0 and vstate["bad"] >= config.patience
+
         if start == 0:
             vstate["bad"] = 0
+            if checks:  # the starting point (a fine-tuning run's init, or the previous stage's end)
+                check(params, 0)
         for it in range(start, stage.steps):
             model, batch = data.sample(rng, stage.batch, stage.frames)
             key, sub = jax.random.split(key)
@@ -453,24 +470,12 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
             if bar:
                 bar.update(1)
             last = it + 1 == stage.steps
-            if checks and ((it + 1) % config.val_every == 0 or last):
-                tot = [validate(params, m, d) for m, d in vbatches]
-                mpjpe = 1000.0 * float(sum(a for a, _ in tot)) / max(float(sum(b for _, b in tot)), 1.0)
-                improved = vstate["best"] is None or mpjpe < vstate["best"]
-                if improved:
-                    vstate.update(best=mpjpe, stage=stage.name, step=it + 1, bad=0)
-                    save_params(out / "params_best.msgpack", params)
-                else:
-                    vstate["bad"] += 1
-                log.write(json.dumps({"stage": stage.name, "step": it + 1, "val_mpjpe_mm": round(mpjpe, 3),
-                                      "best_mm": round(vstate["best"], 3)}) + "\n")
+            if checks and ((it + 1) % config.val_every == 0 or last) and check(params, it + 1) and not last:
+                last = True  # early stop: go on from the best parameters
+                params = serialization.from_state_dict(params, load_params(out / "params_best.msgpack"))
+                log.write(json.dumps({"stage": stage.name, "step": it + 1, "early_stop": True,
+                                      "best_step": vstate["step"]}) + "\n")
                 log.flush()
-                if config.patience > 0 and vstate["bad"] >= config.patience and not last:
-                    last = True  # early stop: go on from the best parameters
-                    params = serialization.from_state_dict(params, load_params(out / "params_best.msgpack"))
-                    log.write(json.dumps({"stage": stage.name, "step": it + 1, "early_stop": True,
-                                          "best_step": vstate["step"]}) + "\n")
-                    log.flush()
             if (it + 1) % config.checkpoint_every == 0 or last:
                 nxt = (si + 1, 0) if last else (si, it + 1)
                 _save_checkpoint(ckpt_path, nxt, params, None if last else opt_state, key, rng, vstate)
