@@ -10,7 +10,10 @@
    were trained on these 1013 (earlier weights: 300 kinematic clips of seed 1 and 40 physics
    clips of seed 2). ``configs/tpnet_extended.json`` fine-tunes the shipped weights on
    data/train_ext (800 clips of the extended generator, ``--extended``, seed 8, simulated)
-   and validates on data/val_ext (48 kinematic clips of seed 78).
+   and validates on data/val_ext (48 kinematic clips of seed 78); ``configs/tpnet_mixed.json``
+   continues that run on data/train_ext and data/train_classic (600 kinematic clips of the
+   classic generator, seed 9), validated on data/val_ext and data/val: the weights shipped
+   on 2026-12-04 (docs/method.md, "Staged training").
 2. Runs the staged training of the config (resumable: re-running continues from
    runs/default/checkpoint.msgpack; progress in runs/default/log.jsonl). The shipped weights of
    2026-12-04 continued the first TPNet stage of a default.json run with
@@ -36,6 +39,9 @@ ARCHIVES = (
     # the extended generator's training and validation archives (configs/tpnet_extended.json)
     ("data/train_ext", 800, 8, ["--physics", "--extended", "--frames-per-clip", "60:150", "--workers", "2"]),
     ("data/val_ext", 48, 78, ["--extended", "--frames-per-clip", "60:150"]),
+    # configs/tpnet_mixed.json: classic kinematic clips beside them, and the validation archive
+    ("data/train_classic", 600, 9, ["--frames-per-clip", "60:150", "--workers", "2"]),
+    ("data/val", 16, 77, ["--physics"]),
 )
 
 
