@@ -205,7 +205,7 @@ def test_extended_cameras_focal_roll_and_pitch():
 
 def test_occlusion_bursts_hide_one_limb_or_side():
     lay = get_layout("body25")
-    groups = S.keypoints._limb_groups(lay.joints)
+    groups = S.keypoints._limb_groups(lay)
     assert [lay.joints[i] for i in groups[("left", "arm")]] == ["LShoulder", "LElbow", "LWrist"]
     assert [lay.joints[i] for i in groups[("right", "leg")]] == ["RKnee", "RAnkle", "RBigToe", "RSmallToe", "RHeel"]
     c = S.Corruption(noise_px=0, noise_rel=0, outlier_prob=0, drop_prob=0, swap_prob=0, drop_outside=False,

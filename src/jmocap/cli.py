@@ -162,10 +162,7 @@ def cmd_data_synth(args) -> int:
         return 2
     fields = dict(frames=args.frames_per_clip, fps=args.fps, layout=args.layout, physics=args.physics,
                   kinds=args.kinds)
-    if args.extended:
-        config = SynthConfig.extended_generator(**fields)
-    else:
-        config = SynthConfig(**fields, corruption=Corruption())
+    config = SynthConfig.extended_generator(**fields) if args.extended else SynthConfig(**fields)
     if args.no_corruption:
         config = dataclasses.replace(config, corruption=Corruption.none())
     if args.imu:

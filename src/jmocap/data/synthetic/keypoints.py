@@ -100,29 +100,18 @@ _ARM = ("shoulder", "elbow", "wrist")
 _LEG = ("knee", "ankle", "foot", "toe", "heel")
 
 
-def _side_of(name: str) -> str | None:
-    """'left' / 'right' for a layout's joint name (BODY_25 ``LKnee``, COCO ``left_knee``,
-    Human3.6M ``LKnee``), else None."""
-    n = name.lower()
-    if n.startswith("left") or (name[:1] == "L" and name[1:2].isupper()):
-        return "left"
-    if n.startswith("right") or (name[:1] == "R" and name[1:2].isupper()):
-        return "right"
-    return None
-
-
-def _limb_groups(names) -> dict:
-    """Joint indices of each (side, "arm" | "leg") of a layout's joint ``names``."""
+def _limb_groups(layout) -> dict:
+    """Joint indices of each (side, "arm" | "leg") of a layout, from its left/right
+    ``flip_pairs`` (so the sides are the layout's own pairing)."""
     out = {(sd, part): [] for sd in SIDE_PREFIXES for part in ("arm", "leg")}
-    for j, raw in enumerate(names):
-        sd = _side_of(raw)
-        if sd is None:
-            continue
-        n = raw.lower()
-        if any(k in n for k in _ARM):
-            out[(sd, "arm")].append(j)
-        elif any(k in n for k in _LEG):
-            out[(sd, "leg")].append(j)
+    for pair in sorted(layout.flip_pairs):
+        n = layout.joints[pair[0]].lower()
+        part = "arm" if any(k in n for k in _ARM) else ("leg" if any(k in n for k in _LEG) else None)
+        if part is not None:
+            for sd, j in zip(SIDE_PREFIXES, pair, strict=True):
+                out[(sd, part)].append(j)
+    for v in out.values():
+        v.sort()
     return out
 
 
@@ -187,7 +176,7 @@ def corrupt_keypoints(rng: np.random.Generator, uv: np.ndarray, layout, image_si
     n_occ = 0
     occluded = np.zeros((T, J), bool)
     if c.occlusion_prob > 0:
-        groups = _limb_groups(layout.joints)
+        groups = _limb_groups(layout)
         t = 0
         while t < T:
             if rng.uniform() < c.occlusion_prob:
