@@ -176,7 +176,10 @@ def section(res, clips, meta, command: str, wall_s: float, params_src: str) -> s
         "",
         f"Contact MLP: `{params_src}` (widths {meta.get('widths')}, best epoch {meta.get('best_epoch')}, "
         f"trained by `{meta.get('command', '?')}` on {meta['archive']['clips']} clips of seed "
-        f"{meta['archive']['seed']}). Majority labels {meta['train_majority']} and the velocity "
+        f"{meta['archive']['seed']}"
+        + "".join(f" and {e['clips']} {'extended ' if e.get('extended') else ''}clips of seed {e['seed']}"
+                  for e in meta.get("extra_archives", []))
+        + f"). Majority labels {meta['train_majority']} and the velocity "
         f"threshold {meta['velocity_threshold']:.4f} body sizes per frame come from its training "
         f"split; nothing was tuned on this archive.",
         "",

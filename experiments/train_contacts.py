@@ -51,6 +51,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 HELDOUT_SEED = 123
+#: the held-out evaluation archives (docs/evaluation.md): never trained or tuned on
+HELDOUT = ("data/heldout", "data/heldout_ext")
+HELDOUT_SEEDS = (123, 2026)
 #: the BODY_25 joints that COCO-17 and Human3.6M-17 do not have (dropped together by --layout-drop)
 FEET = ("LBigToe", "LSmallToe", "LHeel", "RBigToe", "RSmallToe", "RHeel")
 BATCH = 256
@@ -88,11 +91,27 @@ def ensure_archive(path: Path, clips: int, seed: int, frames: str, workers: int 
     return time.time() - t0
 
 
-def load_clips(path: Path, clips: int):
+def check_extra(path: Path) -> dict:
+    """An additional training archive (``--extra-data``): it must exist, come from the physics
+    generator (force-and-floor contact labels) and not be a held-out archive; returns its
+    ``archive.json``."""
+    meta = path / "archive.json"
+    if not meta.exists():
+        sys.exit(f"--extra-data {path}: no archive.json (make it with jmocap data synth --physics first)")
+    got = json.loads(meta.read_text())
+    if any(path.resolve() == (ROOT / h).resolve() for h in HELDOUT) or got.get("seed") in HELDOUT_SEEDS:
+        sys.exit(f"--extra-data {path}: seed {got.get('seed')} is a held-out evaluation archive's: never train on it")
+    if not got.get("config", {}).get("physics"):
+        sys.exit(f"--extra-data {path}: not a physics archive (its contact labels follow the geometric rule)")
+    return got
+
+
+def load_clips(path: Path, clips: int | None = None):
     from jmocap.data.archive import Archive
 
     with Archive(path) as a:
-        out = [a.load(n) for n in a.names()[:clips]]
+        names = a.names()
+        out = [a.load(n) for n in (names if clips is None else names[:clips])]
     bad = [c.name for c in out if c.gt_contacts is None or c.meta.get("contact_rule", {}).get("rule") != "force_floor"]
     if bad:
         sys.exit(f"{path}: clips without force-and-floor contact labels: {bad[:5]}")
@@ -336,6 +355,9 @@ def main(argv=None) -> int:
                     help="clip lengths (short clips: more subjects and cameras per generated frame)")
     ap.add_argument("--extended", action="store_true",
                     help="the archive is the extended generator's (jmocap data synth --extended)")
+    ap.add_argument("--extra-data", nargs="*", default=[], metavar="ARCHIVE",
+                    help="further physics archives trained on with --data (all their clips, each split "
+                         "into training and validation the same way), e.g. data/train_ext")
     ap.add_argument("--run", default="runs/contacts", help="checkpoint, log and outputs")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="generation processes")
     ap.add_argument("--val-fraction", type=float, default=0.15)
@@ -361,13 +383,27 @@ def main(argv=None) -> int:
     if args.seed == HELDOUT_SEED:
         sys.exit(f"seed {HELDOUT_SEED} is the held-out evaluation archive's: train on another seed")
     data, run = ROOT / args.data, ROOT / args.run
-    if data.resolve() == (ROOT / "data/heldout").resolve():
-        sys.exit("data/heldout is the held-out evaluation archive: never train on it")
+    if any(data.resolve() == (ROOT / h).resolve() for h in HELDOUT):
+        sys.exit(f"{args.data} is a held-out evaluation archive: never train on it")
     run.mkdir(parents=True, exist_ok=True)
     t_start = time.time()
     gen_s = ensure_archive(data, args.clips, args.seed, args.frames_per_clip, args.workers, args.extended)
     clips = load_clips(data, args.clips)
     tr, va = split(clips, args.val_fraction, args.seed)
+    main_frames = int(sum(c.num_frames for c in clips))
+    split_names = {"train_clips": [c.name for c in tr], "val_clips": [c.name for c in va]}
+    extra = []
+    for e in args.extra_data:
+        meta = check_extra(ROOT / e)
+        more = load_clips(ROOT / e)
+        etr, eva = split(more, args.val_fraction, args.seed)
+        tr, va, clips = tr + etr, va + eva, clips + more
+        split_names["train_clips"] += [f"{e}/{c.name}" for c in etr]
+        split_names["val_clips"] += [f"{e}/{c.name}" for c in eva]
+        extra.append({"path": e, "clips": len(more), "seed": meta.get("seed"),
+                      "extended": bool(meta.get("config", {}).get("extended")),
+                      "frames": int(sum(c.num_frames for c in more))})
+        log(f"+ {e}: {len(more)} clips ({extra[-1]['frames']} frames)")
     log(f"{len(clips)} clips ({sum(c.num_frames for c in clips)} frames): {len(tr)} train, {len(va)} validation")
     t0 = time.time()
     Xtr, Ytr, Mtr = clip_arrays(tr, flip=True, window=args.window)
@@ -388,10 +424,11 @@ def main(argv=None) -> int:
     summary = {
         "paper": "Rempe et al. 2020, Sec. 3.2 / Appendix A.2",
         "command": "python experiments/train_contacts.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "archive": {"path": args.data, "clips": len(clips), "seed": args.seed, "physics": True, "extended": args.extended,
-                    "frames_per_clip": args.frames_per_clip, "frames": int(sum(c.num_frames for c in clips)),
+        "archive": {"path": args.data, "clips": args.clips, "seed": args.seed, "physics": True, "extended": args.extended,
+                    "frames_per_clip": args.frames_per_clip, "frames": main_frames,
                     "contact_rule": "force_floor"},
-        "split": {"train_clips": [c.name for c in tr], "val_clips": [c.name for c in va]},
+        "extra_archives": extra,
+        "split": split_names,
         "widths": list(ce.mlp_widths(best)),
         "window": ce.window_of(best),
         "hyper": {k: getattr(args, k) for k in ("lr", "weight_decay", "noise", "drop_max", "scale_jitter", "layout_drop",
