@@ -12,8 +12,9 @@
    data/train_ext (800 clips of the extended generator, ``--extended``, seed 8, simulated)
    and validates on data/val_ext (48 kinematic clips of seed 78); ``configs/tpnet_mixed.json``
    continues that run on data/train_ext and data/train_classic (600 kinematic clips of the
-   classic generator, seed 9), validated on data/val_ext and data/val: the weights shipped
-   on 2026-12-04 (docs/method.md, "Staged training").
+   classic generator, seed 9), validated on data/val_ext and data/val; ``configs/tpnet_mixed2.json``
+   continues it on those two and data/contacts_train: the weights shipped since 2026-12-04
+   (docs/method.md, "Staged training").
 2. Runs the staged training of the config (resumable: re-running continues from
    runs/default/checkpoint.msgpack; progress in runs/default/log.jsonl). The shipped weights of
    2026-12-04 continued the first TPNet stage of a default.json run with
