@@ -50,7 +50,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-HELDOUT_SEED = 123
 #: the held-out evaluation archives (docs/evaluation.md): never trained or tuned on
 HELDOUT = ("data/heldout", "data/heldout_ext")
 HELDOUT_SEEDS = (123, 2026)
@@ -380,8 +379,8 @@ def main(argv=None) -> int:
         if args.window != WINDOW:
             sys.exit(f"--ship needs --window {WINDOW} (jmocap.methods.contact_estimation.WINDOW, which "
                      f"sizes the methods' history and lookahead); change that constant first")
-    if args.seed == HELDOUT_SEED:
-        sys.exit(f"seed {HELDOUT_SEED} is the held-out evaluation archive's: train on another seed")
+    if args.seed in HELDOUT_SEEDS:
+        sys.exit(f"seed {args.seed} is a held-out evaluation archive's: train on another seed")
     data, run = ROOT / args.data, ROOT / args.run
     if any(data.resolve() == (ROOT / h).resolve() for h in HELDOUT):
         sys.exit(f"{args.data} is a held-out evaluation archive: never train on it")
