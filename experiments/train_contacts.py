@@ -90,6 +90,12 @@ def ensure_archive(path: Path, clips: int, seed: int, frames: str, workers: int 
     return time.time() - t0
 
 
+def refuse_heldout(path: Path, seed) -> None:
+    """Exit when ``path`` is a held-out archive's folder or ``seed`` a held-out archive's seed."""
+    if any(path.resolve() == (ROOT / h).resolve() for h in HELDOUT) or seed in HELDOUT_SEEDS:
+        sys.exit(f"{path} (seed {seed}) is a held-out evaluation archive: never train on it")
+
+
 def check_extra(path: Path) -> dict:
     """An additional training archive (``--extra-data``): it must exist, come from the physics
     generator (force-and-floor contact labels) and not be a held-out archive; returns its
@@ -98,8 +104,7 @@ def check_extra(path: Path) -> dict:
     if not meta.exists():
         sys.exit(f"--extra-data {path}: no archive.json (make it with jmocap data synth --physics first)")
     got = json.loads(meta.read_text())
-    if any(path.resolve() == (ROOT / h).resolve() for h in HELDOUT) or got.get("seed") in HELDOUT_SEEDS:
-        sys.exit(f"--extra-data {path}: seed {got.get('seed')} is a held-out evaluation archive's: never train on it")
+    refuse_heldout(path, got.get("seed"))
     if not got.get("config", {}).get("physics"):
         sys.exit(f"--extra-data {path}: not a physics archive (its contact labels follow the geometric rule)")
     return got
@@ -379,11 +384,8 @@ def main(argv=None) -> int:
         if args.window != WINDOW:
             sys.exit(f"--ship needs --window {WINDOW} (jmocap.methods.contact_estimation.WINDOW, which "
                      f"sizes the methods' history and lookahead); change that constant first")
-    if args.seed in HELDOUT_SEEDS:
-        sys.exit(f"seed {args.seed} is a held-out evaluation archive's: train on another seed")
     data, run = ROOT / args.data, ROOT / args.run
-    if any(data.resolve() == (ROOT / h).resolve() for h in HELDOUT):
-        sys.exit(f"{args.data} is a held-out evaluation archive: never train on it")
+    refuse_heldout(data, args.seed)
     run.mkdir(parents=True, exist_ok=True)
     t_start = time.time()
     gen_s = ensure_archive(data, args.clips, args.seed, args.frames_per_clip, args.workers, args.extended)
