@@ -2,6 +2,7 @@
 
     .venv/bin/python experiments/ablate_trajopt.py --clips 0 1 4 6 17 28 35 --set w_pose=1
     .venv/bin/python experiments/ablate_trajopt.py --gt-contacts          # oracle contact labels
+    .venv/bin/python experiments/ablate_trajopt.py --gt-flight            # oracle flight frames only
 
 Every clip is padded to one length (``--length``), so the fit compiles once; the config's
 weights are traced (changing them with ``--set`` does not recompile; the static fields do).
@@ -51,6 +52,8 @@ def main():
     ap.add_argument("--length", type=int, default=304)
     ap.add_argument("--set", nargs="*", default=[], help="config fields, name=value")
     ap.add_argument("--gt-contacts", action="store_true", help="the ground-truth contact labels")
+    ap.add_argument("--gt-flight", action="store_true",
+                    help="the estimated labels, cleared on the ground truth's flight frames (no foot in contact)")
     ap.add_argument("--float64", action="store_true")
     ap.add_argument("--dump", default="", help="folder: save each clip's joints per stage (npz)")
     args = ap.parse_args()
@@ -71,11 +74,11 @@ def main():
     roots = np.asarray(get_layout(config.layout).root_indices)
 
     @jax.jit
-    def run(params, model, inputs, gt_contacts, use_gt, config):
+    def run(params, model, inputs, gt_contacts, use_gt, cap, config):
         tp = S.target_pose(params, model, inputs, config)
         mask = jnp.asarray(inputs.mask)
         prob_c = TO.contact_labels(params, inputs, S.contact_probability(tp.contact_logits), config)
-        prob_c = jnp.where(use_gt, gt_contacts, prob_c)
+        prob_c = jnp.where(use_gt, gt_contacts, jnp.minimum(prob_c, cap))
         q0 = TO.initial_trajectory(model, tp.q_hat, mask)
         out = TO.fit(model, TO.problem(model, inputs, tp.q_hat, prob_c, config), q0, config)
         kp = lambda q: jax.vmap(lambda x: P.keypoints(model, x, config.layout))(q)  # noqa: E731
@@ -90,8 +93,11 @@ def main():
         inputs = ClipInputs.from_clip(clip, args.length)
         gtc = np.zeros((args.length, 4), np.float32)
         gtc[:T] = clip.gt_contacts
+        cap = np.ones((args.length, 1), np.float32)
+        if args.gt_flight:  # the estimator's labels with every ground-truth flight frame cleared
+            cap[:T, 0] = np.any(clip.gt_contacts > 0.5, -1)
         t0 = time.perf_counter()
-        k0, k1, k2, used, diag, force, feet = jax.block_until_ready(run(params, model, inputs, gtc, args.gt_contacts, config))
+        k0, k1, k2, used, diag, force, feet = jax.block_until_ready(run(params, model, inputs, gtc, args.gt_contacts, cap, config))
         dt = time.perf_counter() - t0
         gt = clip.gt_keypoints3d
         if args.dump:
