@@ -150,7 +150,7 @@ def load_params(path=ASSET, config_path=None) -> tuple[dict, N.IMUNetConfig]:
     the shipped ones by default; a training run's ``params.msgpack`` and ``config.json``)."""
     import json
 
-    from jmocap.weights import load_params as _load
+    from flax import serialization
 
     path = Path(path)
     cfg_path = Path(config_path) if config_path else (path.with_suffix(".json") if path == ASSET
@@ -160,7 +160,8 @@ def load_params(path=ASSET, config_path=None) -> tuple[dict, N.IMUNetConfig]:
     meta = json.loads(cfg_path.read_text())
     net = meta.get("net", meta)
     fields = {k: v for k, v in net.items() if k in N.IMUNetConfig.__dataclass_fields__}
-    return _load(path), N.IMUNetConfig(**fields)
+    raw = serialization.msgpack_restore(path.read_bytes())  # float16 or float32 on disk
+    return jax.tree.map(lambda x: np.asarray(x, np.float32), raw), N.IMUNetConfig(**fields)
 
 
 __all__ = ["IMUInputs", "Kinematics", "PIPIMUConfig", "kinematics", "load_params", "reconstruct", "single_pd",
