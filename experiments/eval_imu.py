@@ -86,13 +86,15 @@ def clip_metrics(model, q, grf, tau, prob, clip, mask) -> dict[str, float]:
     return out
 
 
-def run(archive: str, params_path: str | None, max_clips: int | None) -> tuple[dict[str, dict[str, float]], int, int]:
+def run(archive: str, params_path: str | None, max_clips: int | None, changes: dict | None = None,
+        ) -> tuple[dict[str, dict[str, float]], int, int]:
     from jmocap.data.archive import Archive
     from jmocap.methods import pip_imu as PI
     from jmocap.model import character
 
     params, net = PI.load_params(params_path) if params_path else PI.load_params()
     base = PI.PIPIMUConfig(net=net)
+    base = base.replace(pip=base.pip.replace(**(changes or {})))
     variants = {
         "kinematics": (base.replace(physics=False), False),
         "pip": (base, False),
@@ -157,11 +159,17 @@ def main(argv=None) -> int:
     ap.add_argument("--max-clips", type=int)
     ap.add_argument("--doc", default=str(ROOT / "docs/evaluation.md"))
     ap.add_argument("--no-docs", action="store_true")
+    ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE",
+                    help="physics config fields (jmocap.methods.pip.PIPConfig's), e.g. kp_anchor=50 smoothing_radius=6")
     args = ap.parse_args(argv)
+    from jmocap.methods.pip import PIPConfig
+
+    defaults = PIPConfig()
+    changes = {k: type(getattr(defaults, k))(float(v)) for k, v in (s.split("=", 1) for s in args.set)}
     command = "python experiments/eval_imu.py" + "".join(
         " " + shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     t0 = time.time()
-    means, clips, frames = run(args.archive, args.params, args.max_clips)
+    means, clips, frames = run(args.archive, args.params, args.max_clips, changes)
     text = (f"- Archive: `{args.archive}` ({clips} clips, {frames} frames); command: `{command}` "
             f"({(time.time() - t0) / 60:.1f} min on this 2-core CPU).\n\n" + table(means))
     print(text)

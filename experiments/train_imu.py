@@ -190,6 +190,9 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-only", action="store_true",
                     help="write the checkpoint's best parameters and evaluate them (no training)")
     ap.add_argument("--time-limit-min", type=float, default=None, help="stop (with a checkpoint) after this long")
+    ap.add_argument("--ship", action="store_true",
+                    help="copy the best parameters into the package (float16, src/jmocap/assets/imu_kinematics.msgpack "
+                         "and its .json: the network config and this command), the weights of jmocap.methods.pip_imu")
     a = ap.parse_args(argv)
 
     out = Path(a.out)
@@ -290,6 +293,8 @@ def main(argv=None) -> int:
           f"params.msgpack {size / 1e6:.2f} MB, {sum(x.size for x in jax.tree.leaves(best_params))} parameters",
           flush=True)
 
+    if a.ship:
+        ship(best_params, cfg, a)
     if a.eval:
         params = load_params(out / "params.msgpack")
         test = load_clips(a.eval)
@@ -302,6 +307,19 @@ def main(argv=None) -> int:
         res["val"] = {"loss": best}
         atomic_write(out / "eval.json", json.dumps(res, indent=2).encode())
     return 0
+
+
+def ship(params, cfg: N.IMUNetConfig, a) -> None:
+    """Write the weights (float16) and their network config where ``jmocap.methods.pip_imu`` loads them."""
+    from jmocap.methods import pip_imu as PI
+
+    half = jax.tree.map(lambda x: np.asarray(x, np.float16), params)
+    atomic_write(PI.ASSET, serialization.msgpack_serialize(half))
+    meta = {"net": cfg.to_json(), "made_by": "python experiments/train_imu.py " + " ".join(
+        f"--{k.replace('_', '-')} {v}" for k, v in vars(a).items()
+        if k in ("data", "out", "steps", "batch", "frames", "lr", "width", "contact_width", "layers", "dropout", "seed"))}
+    atomic_write(PI.ASSET_CONFIG, json.dumps(meta, indent=2).encode())
+    print(f"shipped {PI.ASSET} ({PI.ASSET.stat().st_size / 1e6:.2f} MB)", flush=True)
 
 
 if __name__ == "__main__":

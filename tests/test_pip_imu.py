@@ -112,6 +112,24 @@ def test_causal_padding_changes_no_real_frame(clip, model, params, config):
         np.testing.assert_allclose(np.asarray(x[:T]), np.asarray(y[:T]), atol=0.1, rtol=1e-3)
 
 
+@pytest.mark.parametrize("radius", [0, 6])
+def test_latency_is_the_smoothing_radius(clip, model, params, config, radius):
+    """Frame t's output depends on the inputs up to t + lookahead only: cutting the clip after
+    frame t (the later frames made padding) changes no output before t + 1 - lookahead."""
+    cfg = config.replace(pip=config.pip.replace(smoothing_radius=radius))
+    assert PI.lookahead(cfg) == radius
+    inp = PI.IMUInputs.from_clip(clip, model, T_PAD)
+    t = 25
+    cut = inp.replace(mask=inp.mask.at[t + 1:].set(False), ori=inp.ori.at[t + 1:].set(inp.ori[t]),
+                      acc=inp.acc.at[t + 1:].set(inp.acc[t]))
+    a, b = _rec(params, model, inp, cfg), _rec(params, model, cut, cfg)
+    keep = t + 1 - radius
+    np.testing.assert_allclose(np.asarray(a.q[:keep]), np.asarray(b.q[:keep]), atol=1e-4, rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(a.grf[:keep]), np.asarray(b.grf[:keep]), atol=0.1, rtol=1e-3)
+    if radius:  # and the smoothing does reach that far ahead
+        assert float(jnp.abs(a.q[keep:t + 1] - b.q[keep:t + 1]).max()) > 1e-6
+
+
 def test_vmap_over_clips_equals_each_clip(clip, model, params, config):
     cfg = IMUSynthConfig(synth=SynthConfig(frames=30, kinds=("squat",)), corruption=IMUCorruption.none())
     other = generate_imu_clip(12, 1, cfg)
@@ -147,7 +165,8 @@ def test_physics_guarantees(clip, model, params, config):
 @pytest.mark.skipif(not PI.ASSET.exists(), reason="no shipped IMU kinematics weights")
 def test_shipped_weights_on_a_simulated_walk(clip, model):
     """The shipped kinematics module and the physics on a held-out simulated walk (seed 11,
-    never trained on: training used seed 1): bounds set about 1.5x above the measured values."""
+    never trained on: training used seed 1): measured 30.8 mm and 5.7 % BW (stop 38); the bounds
+    are about 1.6x those (the untrained network's error is several times larger)."""
     from jmocap import metrics as M
 
     params, net = PI.load_params()
@@ -162,5 +181,5 @@ def test_shipped_weights_on_a_simulated_walk(clip, model):
     assert residual < RESIDUAL_BOUND_PCT, residual
 
 
-MPJPE_BOUND_MM = 150.0
-RESIDUAL_BOUND_PCT = 20.0
+MPJPE_BOUND_MM = 50.0
+RESIDUAL_BOUND_PCT = 10.0

@@ -17,11 +17,15 @@ the physics of the video ``pip`` method.
    come from the integrated estimate (PIP tracks the estimated root velocity); its height from
    gravity and the contacts.
 
-Causal and online: frame t depends on frames <= t (latency 0 frames; the networks, the
-reference's backward differences and the root-velocity filter are causal, and the physics steps
-forward in time). Pure functions of arrays with static shapes: ``jax.jit`` and ``jax.vmap``
-over clips apply. The single-PD ablation of the paper is :func:`single_pd` (no position PD:
-rotations only, plus the root's anchor).
+Online with a fixed latency: frame t depends on frames <= t + ``pip.smoothing_radius`` (6
+frames, 0.2 s at 30 fps, by default: :func:`lookahead`): the reference poses are smoothed by the
+video method's centred Gaussian (:func:`jmocap.methods.pip.smooth_poses`, sigma 3 frames)
+before they are tracked, which on the validation archive took the net GRF error from 48 to 28
+% BW and the residual from 7.3 to 5.2 % BW at 0.7 mm less joint error (docs/method.md);
+``smoothing_radius=0`` is PIP's causal setting (latency 0: the networks, the reference's
+backward differences and the root-velocity filter are causal, and the physics steps forward in
+time). Pure functions of arrays with static shapes: ``jax.jit`` and ``jax.vmap`` over clips
+apply. The single-PD ablation of the paper is :func:`single_pd` (no position PD: rotations only, plus the root's anchor).
 """
 
 from __future__ import annotations
@@ -87,8 +91,14 @@ class PIPIMUConfig:
     estimate only (PIP's kinematics-only rows)."""
 
     net: N.IMUNetConfig = static(N.IMUNetConfig())
-    pip: PIP.PIPConfig = PIP.PIPConfig(smoothing_radius=0, reference_source="tpnet", contact_source="tpnet")
+    pip: PIP.PIPConfig = PIP.PIPConfig(smoothing_radius=6, smoothing_sigma=3.0, reference_source="tpnet",
+                                       contact_source="tpnet")
     physics: bool = static(True)
+
+
+def lookahead(config: PIPIMUConfig) -> int:
+    """Frames after a frame that its output depends on (the method's latency)."""
+    return int(config.pip.smoothing_radius) if config.physics else 0
 
 
 def single_pd(config: PIPIMUConfig) -> PIPIMUConfig:
@@ -140,7 +150,8 @@ def reconstruct(params, model: Model, inputs: IMUInputs, config: PIPIMUConfig = 
         T = k.q.shape[0]
         return Motion(k.q, qd, jnp.zeros((T, model.nv), k.q.dtype), jnp.zeros((T, 4, 3), k.q.dtype), k.prob, k.q,
                       mask)
-    ref = PIP.reference(model, k.q, k.prob, inputs.fps, config.pip.velocity_smoothing_s)
+    q_ref = PIP.smooth_poses(k.q, mask, config.pip.smoothing_radius, config.pip.smoothing_sigma)
+    ref = PIP.reference(model, q_ref, k.prob, inputs.fps, config.pip.velocity_smoothing_s)
     _, out = PIP.simulate(model, ref, mask, inputs.fps, config.pip)
     return Motion(out.q, out.qd, out.tau, out.grf, ref.prob, ref.q, mask, certified=out.certified)
 
@@ -164,5 +175,5 @@ def load_params(path=ASSET, config_path=None) -> tuple[dict, N.IMUNetConfig]:
     return jax.tree.map(lambda x: np.asarray(x, np.float32), raw), N.IMUNetConfig(**fields)
 
 
-__all__ = ["IMUInputs", "Kinematics", "PIPIMUConfig", "kinematics", "load_params", "reconstruct", "single_pd",
-           "zero_init"]
+__all__ = ["IMUInputs", "Kinematics", "PIPIMUConfig", "kinematics", "load_params", "lookahead", "reconstruct",
+           "single_pd", "zero_init"]
