@@ -93,6 +93,27 @@ def make_inputs(batch: int, frames: int):
     return jax.tree.map(lambda *xs: np.stack(xs), *[one[i] for i in idx])
 
 
+def make_imu_inputs(batch: int, frames: int):
+    """IMU inputs of ``pip_imu`` (``jmocap.methods.pip_imu.IMUInputs``) from simulated synthetic
+    IMU clips (300 frames, 30 fps) on the nominal character, tiled to the batch."""
+    import jax
+    import numpy as np
+
+    from jmocap.data.synthetic import SynthConfig
+    from jmocap.data.synthetic.imu import IMUSynthConfig, generate_imu_clip
+    from jmocap.methods import pip_imu as PI
+    from jmocap.model import character
+
+    model = character()
+    one = []
+    for i in range(min(N_DISTINCT, batch)):
+        c = generate_imu_clip(0, i, IMUSynthConfig(synth=SynthConfig(frames=CLIP_FRAMES)))
+        inp = PI.IMUInputs.from_clip(c, model)  # the clip's own first pose, on the nominal character
+        one.append(jax.tree.map(lambda x: np.asarray(x)[:frames] if np.ndim(x) and len(x) == CLIP_FRAMES else x, inp))
+    idx = [i % len(one) for i in range(batch)]
+    return jax.tree.map(lambda *xs: np.stack(xs), *[one[i] for i in idx])
+
+
 def parse_set(items, cfg):
     """``name=value`` config changes (the value parsed as the field's current type)."""
     out = {}
@@ -117,7 +138,17 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
     from jmocap.model import load_model
 
     model = load_model(with_mjx=backend == "mjx")
-    if backend in ("pip", "pip_tpnet"):  # the pip method (dual PD + tracking QP) or its variant
+    inputs = None
+    if backend == "pip_imu":  # PIP on six IMUs (jmocap.methods.pip_imu), the shipped weights
+        from jmocap.methods import pip_imu as PI
+
+        reconstruct = PI.reconstruct
+        params, net = PI.load_params()
+        cfg = PI.PIPIMUConfig(net=net)
+        source = "shipped weights"
+        inputs = make_imu_inputs(batch, frames)
+        changes = ()  # (its config nests the physics: no --set)
+    elif backend in ("pip", "pip_tpnet"):  # the pip method (dual PD + tracking QP) or its variant
         from jmocap.weights import load_run_params
 
         reconstruct = get_method("pip").reconstruct
@@ -128,7 +159,8 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
         params, cfg, source = load_params(model, PhysCapConfig())
         cfg = cfg.replace(physics_backend=backend)
     cfg = cfg.replace(**parse_set(changes, cfg))
-    inputs = make_inputs(batch, frames)
+    if inputs is None:
+        inputs = make_inputs(batch, frames)
     if devices > 1:
         if len(jax.devices()) < devices or batch % devices:
             raise SystemExit(f"need {devices} devices (have {len(jax.devices())}) and a batch divisible by them")
@@ -290,6 +322,8 @@ def main(argv=None):
     ap.add_argument("--devices", type=int, default=1, help=argparse.SUPPRESS)  # with --one
     ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="with --one: config changes of the method (e.g. fit_iterations=5)")
+    ap.add_argument("--imu", action="store_true",
+                    help="also PIP on six IMUs (backend column 'pip_imu') at batch 1 (latency) and 512")
     ap.add_argument("--pip", action="store_true",
                     help="also the pip method and its variant pip_tpnet (backend columns 'pip', 'pip_tpnet')")
     args = ap.parse_args(argv)
@@ -323,6 +357,9 @@ def main(argv=None):
         if cores > 1:
             configs += [(512 if not args.quick else 8, args.large_frames, "pip", cores)]
         configs += [(512 if not args.quick else 8, args.large_frames, "pip_tpnet", cores)]
+    if args.imu:  # PIP on IMUs: batch 1 (an online stream) and 512 (throughput)
+        configs += [(1, CLIP_FRAMES if not args.quick else 30, "pip_imu", 1),
+                    (512 if not args.quick else 8, args.large_frames, "pip_imu", cores)]
     print(f"machine: {machine()}  (OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']})", flush=True)
     rows = []
     for b, f, backend, ndev in configs:
