@@ -612,6 +612,10 @@ def run_reconstruct(args) -> int:
 
     if args.cache_dir and not jax.config.jax_compilation_cache_dir:
         jax.config.update("jax_compilation_cache_dir", args.cache_dir)
+    from jmocap.batch_imu import is_imu_archive
+
+    if is_imu_archive(args.input):
+        return _reconstruct_imu(args)
     try:
         if args.kinematic_only and args.method not in (None, "kinematic"):
             raise ValueError(f"--kinematic-only contradicts --method {args.method}")
@@ -653,6 +657,38 @@ def run_reconstruct(args) -> int:
     if summary.get("skipped_files"):
         print(f"  {summary['skipped_files']} files are not clips and were skipped (summary.json 'skipped')",
               file=sys.stderr)
+    return 0 if summary["failed"] == 0 and summary["pending"] == 0 else 1
+
+
+def _reconstruct_imu(args) -> int:
+    """``jmocap reconstruct`` on an archive of six-IMU clips: PIP (``jmocap.methods.pip_imu``)."""
+    from jmocap.batch_imu import METHOD, reconstruct_imu_archive
+    from jmocap.methods import pip_imu as PI
+    from jmocap.progress import progress_bar
+
+    try:
+        if args.method not in (None, "pip", METHOD) or args.kinematic_only:
+            raise ValueError(f"{args.input} holds IMU clips: their method is pip ({METHOD}), not "
+                             f"{args.method or 'kinematic'}")
+        params, net = PI.load_params(args.params) if args.params else PI.load_params()
+        config = PI.PIPIMUConfig(net=net)
+        if args.config:
+            from jmocap.weights import _config_overrides
+
+            config = config.replace(pip=config.pip.replace(**_config_overrides(args.config)))
+        summary = reconstruct_imu_archive(args.input, args.output, params, config, bucket=args.bucket,
+                                          max_clips=args.max_clips,
+                                          progress=progress_bar("reconstruct", not args.quiet))
+    except (OSError, ValueError, RuntimeError, TypeError) as e:
+        msg = " ".join(str(e).split()) or type(e).__name__
+        print(f"jmocap reconstruct: {msg}", file=sys.stderr)
+        return 2
+    r = summary["run"]
+    print(f"jmocap reconstruct ({METHOD}): {summary['ok']}/{summary['clips']} IMU clips ok, {summary['failed']} failed "
+          f"({r['ok']} done and {r['failed']} failed this run, {r['skipped']} already done); {r['frames']} frames "
+          f"in {r['seconds']:.1f} s -> {args.output}")
+    for f in summary["failures"][:10]:
+        print(f"  failed: {f['error']}", file=sys.stderr)
     return 0 if summary["failed"] == 0 and summary["pending"] == 0 else 1
 
 
