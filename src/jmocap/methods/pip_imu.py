@@ -25,7 +25,8 @@ before they are tracked, which on the validation archive took the net GRF error 
 ``smoothing_radius=0`` is PIP's causal setting (latency 0: the networks, the reference's
 backward differences and the root-velocity filter are causal, and the physics steps forward in
 time). Pure functions of arrays with static shapes: ``jax.jit`` and ``jax.vmap`` over clips
-apply. The single-PD ablation of the paper is :func:`single_pd` (no position PD: rotations only, plus the root's anchor).
+apply. The paper's ablations: :func:`single_pd` (no position PD: rotations only, plus the root's
+anchor) and :func:`zero_init` (every network from the zero state).
 """
 
 from __future__ import annotations
