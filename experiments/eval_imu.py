@@ -8,8 +8,8 @@ Rows (each clip from its known first pose, as PIP's evaluation, unless said):
 
 * ``kinematics``: the kinematics module alone (root translated by the integrated velocity);
 * ``pip``: + the dual PD controller and the motion-tracking QP (the method);
-* ``pip, single PD``: rotations-only PD (the paper's ablation, Tab. 4);
-* ``pip, zero initial state``: every network from zero (the paper's ablation, Tab. 4);
+* ``pip, single PD``: rotations-only PD (the paper's ablation, Tab. 2);
+* ``pip, zero initial state``: every network from zero (the paper's ablation, Tab. 2);
 * ``ground truth``: the archive's own motion and forces (what the metrics give on it).
 
 Metrics (``jmocap.metrics``, means over clips): SIP error and angular error (global, deg), the
@@ -170,7 +170,9 @@ def main(argv=None) -> int:
         " " + shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     t0 = time.time()
     means, clips, frames = run(args.archive, args.params, args.max_clips, changes)
-    text = (f"- Archive: `{args.archive}` ({clips} clips, {frames} frames); command: `{command}` "
+    shown = Path(args.archive).resolve()
+    shown = shown.relative_to(ROOT) if shown.is_relative_to(ROOT) else shown
+    text = (f"- Archive: `{shown}` ({clips} clips, {frames} frames); command: `{command}` "
             f"({(time.time() - t0) / 60:.1f} min on this 2-core CPU).\n\n" + table(means))
     print(text)
     if not args.no_docs:
