@@ -87,7 +87,7 @@ def clip_metrics(model, q, grf, tau, prob, clip, mask) -> dict[str, float]:
 
 
 def run(archive: str, params_path: str | None, max_clips: int | None, changes: dict | None = None,
-        ) -> tuple[dict[str, dict[str, float]], int, int]:
+        rows=ROWS) -> tuple[dict[str, dict[str, float]], int, int]:
     from jmocap.data.archive import Archive
     from jmocap.methods import pip_imu as PI
     from jmocap.model import character
@@ -101,8 +101,9 @@ def run(archive: str, params_path: str | None, max_clips: int | None, changes: d
         "pip, single PD": (PI.single_pd(base), False),
         "pip, zero initial state": (base, True),
     }
+    variants = {k: v for k, v in variants.items() if k in rows}
     rec = jax.jit(PI.reconstruct)
-    per: dict[str, list[dict[str, float]]] = {r: [] for r in ROWS}
+    per: dict[str, list[dict[str, float]]] = {r: [] for r in rows}
     frames = 0
     with Archive(archive) as a:
         names = a.names()[:max_clips] if max_clips else a.names()
@@ -120,20 +121,22 @@ def run(archive: str, params_path: str | None, max_clips: int | None, changes: d
                 per[row].append(clip_metrics(model, np.asarray(m.q), np.asarray(m.grf) if forces else None,
                                              np.asarray(m.tau) if forces else None, np.asarray(m.contact_prob),
                                              clip, np.asarray(inputs.mask)))
-            per["ground truth"].append(clip_metrics(model, clip.gt_q, clip.gt_grf, clip.gt_tau,
-                                                    clip.gt_contacts.astype(np.float32), clip,
-                                                    np.ones(clip.num_frames, bool)))
-            print(f"{name}: pip MPJPE {per['pip'][-1]['mpjpe_mm']:.1f} mm, residual "
-                  f"{per['pip'][-1]['root_residual_pct_bw']:.2f} % BW", flush=True)
+            if "ground truth" in rows:
+                per["ground truth"].append(clip_metrics(model, clip.gt_q, clip.gt_grf, clip.gt_tau,
+                                                        clip.gt_contacts.astype(np.float32), clip,
+                                                        np.ones(clip.num_frames, bool)))
+            if "pip" in rows:
+                print(f"{name}: pip MPJPE {per['pip'][-1]['mpjpe_mm']:.1f} mm, residual "
+                      f"{per['pip'][-1]['root_residual_pct_bw']:.2f} % BW", flush=True)
     means = {r: {k: float(np.nanmean([p[k] for p in ps])) for k, _, _ in COLS} for r, ps in per.items()}
     return means, len(names), frames
 
 
-def table(means) -> str:
+def table(means, rows=ROWS) -> str:
     head = "| row | " + " | ".join(h for _, h, _ in COLS) + " |"
     sep = "|---|" + "---:|" * len(COLS)
     lines = [head, sep]
-    for r in ROWS:
+    for r in rows:
         cells = []
         for k, _, fmt in COLS:
             v = means[r][k]
@@ -159,6 +162,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-clips", type=int)
     ap.add_argument("--doc", default=str(ROOT / "docs/evaluation.md"))
     ap.add_argument("--no-docs", action="store_true")
+    ap.add_argument("--rows", nargs="+", choices=ROWS, default=list(ROWS), help="rows to run (default: all)")
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE",
                     help="physics config fields (jmocap.methods.pip.PIPConfig's), e.g. kp_anchor=50 smoothing_radius=6")
     args = ap.parse_args(argv)
@@ -169,11 +173,11 @@ def main(argv=None) -> int:
     command = "python experiments/eval_imu.py" + "".join(
         " " + shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     t0 = time.time()
-    means, clips, frames = run(args.archive, args.params, args.max_clips, changes)
+    means, clips, frames = run(args.archive, args.params, args.max_clips, changes, tuple(args.rows))
     shown = Path(args.archive).resolve()
     shown = shown.relative_to(ROOT) if shown.is_relative_to(ROOT) else shown
     text = (f"- Archive: `{shown}` ({clips} clips, {frames} frames); command: `{command}` "
-            f"({(time.time() - t0) / 60:.1f} min on this 2-core CPU).\n\n" + table(means))
+            f"({(time.time() - t0) / 60:.1f} min on this 2-core CPU).\n\n" + table(means, tuple(args.rows)))
     print(text)
     if not args.no_docs:
         write_docs(text, Path(args.doc))
