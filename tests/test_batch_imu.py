@@ -68,3 +68,20 @@ def test_reconstruct_an_imu_archive(archive, tmp_path, capsys):
 def test_a_2d_method_is_refused(archive, tmp_path, capsys):
     assert main(["reconstruct", str(archive), str(tmp_path / "out"), "--method", "kinematic", "--quiet"]) == 2
     assert "IMU clips" in capsys.readouterr().err
+
+
+def test_eval_on_an_imu_archive(archive, tmp_path):
+    """``jmocap eval`` on IMU clips: the ground truth scores zero pose error against itself, the
+    method's rows are finite, unknown methods are refused."""
+    out = tmp_path / "eval"
+    assert main(["eval", str(archive), "--out", str(out), "--methods", "pip_imu", "ground_truth",
+                 "--max-clips", "2", "--quiet"]) == 0
+    doc = json.loads((out / "metrics.json").read_text())
+    assert set(doc["means"]) == {"pip_imu", "ground_truth"} and len(doc["clips"]) == 2
+    gt, est = doc["means"]["ground_truth"], doc["means"]["pip_imu"]
+    for k in ("sip_deg", "ang_deg", "mpjpe_mm", "mesh_mm", "grf_err_pct_bw"):
+        assert gt[k] == pytest.approx(0.0, abs=1e-3), k
+        assert np.isfinite(est[k]) and est[k] > 0, k
+    assert est["pnp_pct"] == pytest.approx(100.0) and 0 <= est["contact_f1_pct"] <= 100
+    assert "| **pip** |" in (out / "metrics.md").read_text()
+    assert main(["eval", str(archive), "--out", str(out), "--methods", "trajopt", "--quiet"]) == 2

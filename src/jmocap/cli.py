@@ -432,7 +432,8 @@ def _eval(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("archive", help="archive of clips with ground truth (folder, .zip or .tar)")
     p.add_argument("--methods", nargs="+", metavar="METHOD",
-                   help=f"methods and variants (default: all): {_method_list()}, ground_truth")
+                   help=f"methods and variants (default: all): {_method_list()}, ground_truth; on an archive "
+                        "of IMU clips: pip_imu, pip_imu_kinematics, pip_imu_single_pd, pip_imu_zero_init, ground_truth")
     p.add_argument("--params", help="parameters (.msgpack); default: the shipped weights")
     p.add_argument("--random-init", action="store_true",
                    help="freshly initialised parameters (seeded): smoke tests of the harness only")
@@ -451,6 +452,12 @@ def _eval(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_eval(args) -> int:
+    from jmocap.batch_imu import is_imu_archive
+
+    if is_imu_archive(args.archive):  # six-IMU clips: PIP and its ablations (jmocap.evaluate_imu)
+        from jmocap.evaluate_imu import cmd_eval as run_imu
+
+        return run_imu(args)
     from jmocap.evaluate import cmd_eval as run
 
     return run(args)
