@@ -37,10 +37,11 @@ def test_reconstruct_an_imu_archive(archive, tmp_path, capsys):
         good = a.load(names[0])
     (src / f"{names[2]}.npz").write_bytes(b"not a zip")  # a broken clip
     out = tmp_path / "out"
-    assert main(["reconstruct", str(src), str(out), "--quiet"]) == 1  # one clip failed
+    assert main(["reconstruct", str(src), str(out), "--bvh", "--quiet"]) == 1  # one clip failed
     lines = [json.loads(x) for x in (out / "manifest.jsonl").read_text().splitlines()]
     status = {e["name"]: e["status"] for e in lines}
     assert status == {names[0]: "ok", names[1]: "ok", names[2]: "failed"}
+    assert all((out / e["bvh"]).is_file() for e in lines if e["status"] == "ok")
     failed = next(e for e in lines if e["status"] == "failed")
     assert names[2] in failed["error"]
     summary = json.loads((out / "summary.json").read_text())
@@ -61,13 +62,15 @@ def test_reconstruct_an_imu_archive(archive, tmp_path, capsys):
 
     # a re-run skips the finished clips and retries the failed one
     capsys.readouterr()
-    assert main(["reconstruct", str(src), str(out), "--quiet"]) == 1
+    assert main(["reconstruct", str(src), str(out), "--bvh", "--quiet"]) == 1
     assert "2 already done" in capsys.readouterr().out
 
 
-def test_a_2d_method_is_refused(archive, tmp_path, capsys):
+def test_a_2d_method_or_option_is_refused(archive, tmp_path, capsys):
     assert main(["reconstruct", str(archive), str(tmp_path / "out"), "--method", "kinematic", "--quiet"]) == 2
     assert "IMU clips" in capsys.readouterr().err
+    assert main(["reconstruct", str(archive), str(tmp_path / "out"), "--mass-kg", "70", "--quiet"]) == 2
+    assert "--mass-kg" in capsys.readouterr().err
 
 
 def test_eval_on_an_imu_archive(archive, tmp_path):

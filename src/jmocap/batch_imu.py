@@ -82,9 +82,9 @@ def result_arrays(clip: IMUClip, motion: dict[str, np.ndarray], *, height_m: flo
 
 
 def reconstruct_imu_archive(input, output, params, config: PI.PIPIMUConfig, *, bucket: int = 64,
-                            max_clips: int | None = None, progress=None) -> dict[str, Any]:
+                            max_clips: int | None = None, bvh: bool = False, progress=None) -> dict[str, Any]:
     """Reconstruct every clip of the IMU archive ``input`` into ``output`` (module doc); returns
-    the summary (also written as ``summary.json``)."""
+    the summary (also written as ``summary.json``). ``bvh``: also ``<name>.bvh`` per clip."""
     t0 = time.perf_counter()
     identity = run_identity(params, config)
     settings = {"engine": "jmocap.batch_imu", "format": RESULT_FORMAT,
@@ -95,13 +95,15 @@ def reconstruct_imu_archive(input, output, params, config: PI.PIPIMUConfig, *, b
         return m, jax.vmap(lambda q: P.keypoints(model, q, LAYOUT))(m.q)
 
     run = {"ok": 0, "failed": 0, "frames": 0}
-    from jmocap.batch import _output_folder  # the 2D runs' locked, checked output folder
+    from jmocap.batch import _bvh_writer, _output_folder, _write_bvh  # as the 2D runs'
+
+    write_bvh = _bvh_writer() if bvh else None
 
     with Archive(input) as archive, _output_folder(output) as root, ResultWriter(root, settings) as writer:
         names = archive.names()
         if not names:
             raise ArchiveError(f"{input}: no clips found")
-        todo = [n for n in names if not writer.done(n)]
+        todo = [n for n in names if not writer.done(n, bvh=bvh)]
         skipped = len(names) - len(todo)
         if max_clips is not None:
             todo = todo[:max_clips]
@@ -128,10 +130,13 @@ def reconstruct_imu_archive(input, output, params, config: PI.PIPIMUConfig, *, b
                 height = DEFAULT_HEIGHT_M if clip.height_m is None else float(clip.height_m)
                 arrays = result_arrays(clip, motion, height_m=height, mass_kg=model.total_mass,
                                        identity=identity, source=where, assumed=assumed, warnings=warnings)
+                extra = {"warnings": warnings} if warnings else {}
+                if write_bvh is not None:
+                    extra["bvh"] = _write_bvh(write_bvh, root, name, model, motion["q"], float(clip.fps))
                 writer.add_result(name, arrays, frames=T, fps=float(clip.fps), input_kind="imu6",
                                   height_m=height, source=where,
                                   uncertified_frames=int(np.sum(~motion["certified"])),
-                                  seconds=round(time.perf_counter() - t, 4), **({"warnings": warnings} if warnings else {}))
+                                  seconds=round(time.perf_counter() - t, 4), **extra)
                 run["ok"] += 1
                 run["frames"] += T
                 if bar is not None:

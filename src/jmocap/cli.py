@@ -677,6 +677,10 @@ def _reconstruct_imu(args) -> int:
         if args.method not in (None, "pip", METHOD) or args.kinematic_only:
             raise ValueError(f"{args.input} holds IMU clips: their method is pip ({METHOD}), not "
                              f"{args.method or 'kinematic'}")
+        if args.mass_kg is not None or args.height_m not in ("auto", "nominal") or args.image_size:
+            raise ValueError(f"{args.input} holds IMU clips: each is reconstructed on its own subject (height_m, "
+                             "mass_kg in the clip, else the nominal character); --height-m H, --mass-kg and "
+                             "--image-size apply to 2D clips only")
         params, net = PI.load_params(args.params) if args.params else PI.load_params()
         config = PI.PIPIMUConfig(net=net)
         if args.config:
@@ -684,8 +688,12 @@ def _reconstruct_imu(args) -> int:
 
             config = config.replace(pip=config.pip.replace(**_config_overrides(args.config)))
         summary = reconstruct_imu_archive(args.input, args.output, params, config, bucket=args.bucket,
-                                          max_clips=args.max_clips,
+                                          max_clips=args.max_clips, bvh=args.bvh,
                                           progress=progress_bar("reconstruct", not args.quiet))
+    except KeyboardInterrupt:
+        print(f"\njmocap reconstruct: interrupted (SIGINT); finished results are in {args.output}; run the same "
+              "command again to resume", file=sys.stderr)
+        return 130
     except (OSError, ValueError, RuntimeError, TypeError) as e:
         msg = " ".join(str(e).split()) or type(e).__name__
         print(f"jmocap reconstruct: {msg}", file=sys.stderr)
