@@ -182,6 +182,8 @@ def main(argv=None) -> int:
     ap.add_argument("--contact-width", type=int, default=32)
     ap.add_argument("--layers", type=int, default=2)
     ap.add_argument("--dropout", type=float, default=0.1)
+    ap.add_argument("--contact-pos-weight", type=float, default=1.0,
+                    help="weight of the in-contact class in the contacts' BCE (> 1: towards recall)")
     ap.add_argument("--no-learned-init", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--log-every", type=int, default=50)
@@ -198,7 +200,7 @@ def main(argv=None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     cfg = N.IMUNetConfig(width=a.width, contact_width=a.contact_width, layers=a.layers, dropout=a.dropout,
-                         learned_init=not a.no_learned_init)
+                         learned_init=not a.no_learned_init, contact_pos_weight=a.contact_pos_weight)
     atomic_write(out / "config.json", json.dumps({"net": cfg.to_json(), "args": vars(a)}, indent=2).encode())
 
     t0 = time.time()
@@ -317,7 +319,8 @@ def ship(params, cfg: N.IMUNetConfig, a) -> None:
     atomic_write(PI.ASSET, serialization.msgpack_serialize(half))
     meta = {"net": cfg.to_json(), "made_by": "python experiments/train_imu.py " + " ".join(
         f"--{k.replace('_', '-')} {v}" for k, v in vars(a).items()
-        if k in ("data", "out", "steps", "batch", "frames", "lr", "width", "contact_width", "layers", "dropout", "seed"))}
+        if k in ("data", "out", "steps", "batch", "frames", "lr", "width", "contact_width", "layers", "dropout",
+                  "contact_pos_weight", "seed"))}
     atomic_write(PI.ASSET_CONFIG, json.dumps(meta, indent=2).encode())
     print(f"shipped {PI.ASSET} ({PI.ASSET.stat().st_size / 1e6:.2f} MB)", flush=True)
 

@@ -238,3 +238,20 @@ def test_tiny_model_overfits_one_clip(model, clip):
         params, s, loss = upd(params, s)
         first = float(loss) if first is None else first
     assert float(loss) < first / 10, (first, float(loss))
+
+
+@pytest.mark.parametrize("w", [1.0, 3.0])
+def test_contact_loss_is_the_weighted_binary_cross_entropy(w):
+    """The contact term against optax's sigmoid BCE (w = 1) and its hand-weighted form."""
+    rng = np.random.default_rng(0)
+    logits = jnp.asarray(rng.normal(0, 3, (20, 4)), jnp.float32)
+    c = jnp.asarray(rng.random((20, 4)) > 0.4, jnp.float32)
+    T, nh = 20, 41
+    out = N.Outputs(leaf=jnp.zeros((T, 5, 3)), joints=jnp.zeros((T, 23, 3)), hinges=jnp.zeros((T, nh)),
+                    vel=jnp.zeros((T, 24, 3)), contact_logits=logits)
+    tgt = {"leaf": jnp.zeros((T, 5, 3)), "joints": jnp.zeros((T, 23, 3)), "hinges": jnp.zeros((T, nh)),
+           "vel": jnp.zeros((T, 24, 3)), "contacts": c, "R_root": jnp.tile(jnp.eye(3), (T, 1, 1))}
+    got = float(N.losses(out, tgt, dataclasses.replace(TINY, contact_pos_weight=w), 30.0)["contact"])
+    per = optax.sigmoid_binary_cross_entropy(logits, c)
+    want = np.mean(np.where(np.asarray(c) > 0.5, w, 1.0) * np.asarray(per))
+    np.testing.assert_allclose(got, want, rtol=1e-5)

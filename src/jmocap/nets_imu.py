@@ -68,6 +68,7 @@ class IMUNetConfig:
     learned_init: bool = True  # PIP's learned RNN initialisation of P_L and V_A (else zero)
     acc_scale: float = 30.0  # m/s^2
     vel_scale: float = 3.0  # m/s
+    contact_pos_weight: float = 1.0  # weight of the "in contact" class in the contacts' BCE (training only)
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -349,7 +350,10 @@ def losses(out: Outputs, tgt: dict[str, Array], config: IMUNetConfig, fps) -> di
 
     c = tgt["contacts"]
     logits = out.contact_logits
-    bce = jnp.mean(jnp.maximum(logits, 0) - logits * c + jnp.log1p(jnp.exp(-jnp.abs(logits))))
+    # (weighted) binary cross-entropy: w c softplus(-l) + (1 - c) softplus(l)
+    sp_pos = jnp.maximum(-logits, 0) + jnp.log1p(jnp.exp(-jnp.abs(logits)))  # softplus(-l)
+    sp_neg = jnp.maximum(logits, 0) + jnp.log1p(jnp.exp(-jnp.abs(logits)))  # softplus(l)
+    bce = jnp.mean(config.contact_pos_weight * c * sp_pos + (1.0 - c) * sp_neg)
     return {
         "leaf": l2(out.leaf, tgt["leaf"]),
         "joints": l2(out.joints, tgt["joints"]),
