@@ -71,8 +71,10 @@ def clip_metrics(model, q, grf, tau, prob, clip, mask) -> dict[str, float]:
             "grf": None if grf is None else grf[:T], "tau": None if tau is None else tau[:T],
             "contact_prob": None if prob is None else prob[:T]}
     gt = {"keypoints3d": gkin.xpos[:, bodies], "contacts": clip.gt_contacts, "grf": clip.gt_grf, "tau": clip.gt_tau}
-    vals = M.evaluate_arrays(pred, gt, fps=float(clip.fps), mask=np.asarray(mask[:T]), pred_mass=clip.mass_kg,
-                             gt_mass=clip.mass_kg)
+    # the estimate's character is the clip's subject (else the nominal one); the ground truth's weight
+    # is the clip's mass where it has one
+    vals = M.evaluate_arrays(pred, gt, fps=float(clip.fps), mask=np.asarray(mask[:T]), pred_mass=model.total_mass,
+                             gt_mass=clip.mass_kg if clip.mass_kg is not None else model.total_mass)
     for k in ("mpjpe_mm", "jitter_km_s3", "root_residual_pct_bw", "grf_err_pct_bw", "grf_ballistic_pct_bw",
               "skate_pct", "pnp_pct", "contact_f1_pct"):
         out[k] = float(vals.get(k, np.nan))
