@@ -3,7 +3,7 @@
 #
 # 1. builds a wheel from a copy of the tree (the files git tracks or would track, as in a clean
 #    clone) and fails on any setuptools warning in the build log;
-# 2. checks that the wheel ships the character (MJCF), the default weights and the demo sample;
+# 2. checks that the wheel ships the character (MJCF), the default, contact and IMU weights and the demo sample;
 # 3. installs it, NOT editable and with its core dependencies only, into a fresh venv;
 # 4. from a directory outside the source tree: `import jmocap; jmocap.load_model()`,
 #    `python -m jmocap --help`, and `jmocap demo` (results, BVH, OpenSim, GLB, the viewer page,
@@ -44,7 +44,8 @@ step "built $(basename "$WHEEL")"
 import sys, zipfile
 names = set(zipfile.ZipFile(sys.argv[1]).namelist())
 need = ["jmocap/__main__.py", "jmocap/assets/mjcf/humanoid.xml", "jmocap/assets/default_params.msgpack",
-        "jmocap/assets/default_train_config.json"]
+        "jmocap/assets/default_train_config.json", "jmocap/assets/contact_mlp.msgpack",
+        "jmocap/assets/imu_kinematics.msgpack", "jmocap/assets/imu_kinematics.json"]
 missing = [n for n in need if n not in names]
 demo = [n for n in names if n.startswith("jmocap/assets/demo/")]
 gt = [n for n in demo if n.startswith("jmocap/assets/demo/ground_truth/") and n.endswith(".npz")]
