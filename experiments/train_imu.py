@@ -61,8 +61,24 @@ _targets_jit = jax.jit(N.targets)
 _features_jit = jax.jit(N.imu_features)
 
 
-def load_clips(path: str) -> list[dict]:
-    """Every IMU clip of an archive as numpy arrays: input ``x`` (T, 72), targets, fps, model."""
+def sticking_labels(model, gt_q: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """``labels`` (T, 4) kept only where the contact point is also still and low by Rempe et al.'s
+    geometric rule (``jmocap.metrics.contact_labels``: moved < 2 cm since the last frame, < 5 cm
+    above the floor): a loaded point that rolls or pivots is not a sticking contact."""
+    T = len(gt_q)
+    q = np.concatenate([gt_q, np.repeat(gt_q[-1:], _padded_len(T) - T, 0)])  # one compile per padded length
+    feet = np.asarray(_feet_jit(model, jnp.asarray(q, jnp.float32)))[:T]
+    return (np.asarray(labels) > 0.5) & np.asarray(M.contact_labels(feet))
+
+
+@jax.jit
+def _feet_jit(model, q):
+    return jax.vmap(lambda x: P.site_positions(model, x, model.topo.contact_sites))(q)
+
+
+def load_clips(path: str, labels: str = "archive") -> list[dict]:
+    """Every IMU clip of an archive as numpy arrays: input ``x`` (T, 72), targets, fps, model.
+    ``labels``: the archive's contact labels, or ``sticking`` (:func:`sticking_labels`)."""
     out = []
     with Archive(path) as a:
         for clip in a:
@@ -71,7 +87,8 @@ def load_clips(path: str) -> list[dict]:
             T = clip.num_frames
             n = _padded_len(T)
             q = np.concatenate([clip.gt_q, np.repeat(clip.gt_q[-1:], n - T, 0)])
-            c = np.concatenate([clip.gt_contacts, np.repeat(clip.gt_contacts[-1:], n - T, 0)]).astype(np.float32)
+            gc = sticking_labels(model, clip.gt_q, clip.gt_contacts) if labels == "sticking" else clip.gt_contacts
+            c = np.concatenate([gc, np.repeat(gc[-1:], n - T, 0)]).astype(np.float32)
             tgt = _targets_jit(model, jnp.asarray(q, jnp.float32), jnp.float32(clip.fps), jnp.asarray(c))
             tgt = {k: np.asarray(v[:T]) for k, v in tgt.items()}
             pad = np.zeros(n - T, int) + T - 1  # edge padding: one compile per padded length
@@ -182,6 +199,8 @@ def main(argv=None) -> int:
     ap.add_argument("--contact-width", type=int, default=32)
     ap.add_argument("--layers", type=int, default=2)
     ap.add_argument("--dropout", type=float, default=0.1)
+    ap.add_argument("--contact-labels", choices=("archive", "sticking"), default="archive",
+                    help="the archive's contact labels, or only those also still and low (sticking contacts)")
     ap.add_argument("--contact-pos-weight", type=float, default=1.0,
                     help="weight of the in-contact class in the contacts' BCE (> 1: towards recall)")
     ap.add_argument("--no-learned-init", action="store_true")
@@ -204,7 +223,7 @@ def main(argv=None) -> int:
     atomic_write(out / "config.json", json.dumps({"net": cfg.to_json(), "args": vars(a)}, indent=2).encode())
 
     t0 = time.time()
-    clips = load_clips(a.data)
+    clips = load_clips(a.data, a.contact_labels)
     n_val = max(1, int(round(a.val_fraction * len(clips))))
     train, val = clips[:-n_val], clips[-n_val:]
     print(f"loaded {len(clips)} clips ({len(train)} train, {len(val)} val) in {time.time() - t0:.1f} s", flush=True)
