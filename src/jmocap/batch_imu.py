@@ -34,7 +34,6 @@ from jmocap.io import atomic_write
 from jmocap.methods import pip_imu as PI
 from jmocap.model import character
 from jmocap.results import MOTION_FIELDS, RESULT_FORMAT, ResultWriter, check_finite
-from jmocap.weights import model_sha256, params_sha256
 
 #: the method name IMU results record
 METHOD = "pip_imu"
@@ -53,14 +52,6 @@ def is_imu_archive(path) -> bool:
             return bool(names) and isinstance(a.load(names[0]), IMUClip)
     except Exception:  # noqa: BLE001 - not readable as an IMU archive: the 2D path reports why
         return False
-
-
-def run_identity(params, config: PI.PIPIMUConfig) -> dict[str, str]:
-    import dataclasses
-
-    cfg = {"net": dataclasses.asdict(config.net), "pip": dataclasses.asdict(config.pip), "physics": config.physics}
-    return {"method": METHOD, "config": json.dumps(cfg, sort_keys=True, default=float),
-            "params_sha256": params_sha256(params), "model_sha256": model_sha256(), "version": jmocap.__version__}
 
 
 def result_arrays(clip: IMUClip, motion: dict[str, np.ndarray], *, height_m: float, mass_kg: float,
@@ -86,7 +77,14 @@ def reconstruct_imu_archive(input, output, params, config: PI.PIPIMUConfig, *, b
     """Reconstruct every clip of the IMU archive ``input`` into ``output`` (module doc); returns
     the summary (also written as ``summary.json``). ``bvh``: also ``<name>.bvh`` per clip."""
     t0 = time.perf_counter()
-    identity = run_identity(params, config)
+    from jmocap.batch import (  # as the 2D runs'
+        _bvh_writer,
+        _output_folder,
+        _write_bvh,
+        run_identity,
+    )
+
+    identity = run_identity(params, config, METHOD)
     settings = {"engine": "jmocap.batch_imu", "format": RESULT_FORMAT,
                 **{k: identity[k] for k in ("method", "config", "params_sha256", "model_sha256")}}
     @jax.jit
@@ -95,8 +93,6 @@ def reconstruct_imu_archive(input, output, params, config: PI.PIPIMUConfig, *, b
         return m, jax.vmap(lambda q: P.keypoints(model, q, LAYOUT))(m.q)
 
     run = {"ok": 0, "failed": 0, "frames": 0}
-    from jmocap.batch import _bvh_writer, _output_folder, _write_bvh  # as the 2D runs'
-
     write_bvh = _bvh_writer() if bvh else None
 
     with Archive(input) as archive, _output_folder(output) as root, ResultWriter(root, settings) as writer:
@@ -166,4 +162,4 @@ def reconstruct_imu_archive(input, output, params, config: PI.PIPIMUConfig, *, b
     return summary
 
 
-__all__ = ["METHOD", "is_imu_archive", "reconstruct_imu_archive", "result_arrays", "run_identity"]
+__all__ = ["METHOD", "is_imu_archive", "reconstruct_imu_archive", "result_arrays"]

@@ -51,26 +51,44 @@ COLS = (  # key, header, format
 )
 
 
-def clip_metrics(model, q, grf, tau, prob, clip, mask) -> dict[str, float]:
-    """One clip's metrics of a motion ``q`` (T, nq) (``grf``, ``tau``, ``prob`` may be None)."""
-    T = clip.num_frames
-    q, gq = jnp.asarray(q[:T]), jnp.asarray(clip.gt_q, jnp.float32)
-    bodies = tuple(N.body_indices(model)["bodies"])  # the root (pelvis) first
+@jax.jit
+def geometry(model, q):
+    """Per frame of ``q`` (T, nq): world body positions (T, nbody, 3) and orientations (T, nbody,
+    3, 3), and the contact sites (T, 4, 3), in one compiled forward-kinematics pass."""
     kin = jax.vmap(lambda x: P.forward_kinematics(model, x))(q)
-    gkin = jax.vmap(lambda x: P.forward_kinematics(model, x))(gq)
-    sip = np.asarray([model.body_id(n) for n in M.SIP_BODIES])
-    R, gR = kin.xmat[:, bodies[0]], gkin.xmat[:, bodies[0]]
+    feet = jax.vmap(lambda x: P.site_positions(model, x, model.topo.contact_sites))(q)
+    return kin.xpos, kin.xmat, feet
+
+
+def clip_geometry(model, q, length: int):
+    """:func:`geometry` of the first ``len(q)`` frames, computed edge-padded to ``length`` frames
+    (one compile per padded length, not per clip length)."""
+    T = len(q)
+    q = np.concatenate([np.asarray(q, np.float32), np.repeat(np.asarray(q[-1:], np.float32), length - T, 0)])
+    return tuple(np.asarray(a)[:T] for a in geometry(model, jnp.asarray(q)))
+
+
+def clip_metrics(model, q, grf, tau, prob, clip, mask, gt_geometry=None) -> dict[str, float]:
+    """One clip's metrics of a motion ``q`` (T, nq) (``grf``, ``tau``, ``prob`` may be None);
+    ``gt_geometry``: :func:`clip_geometry` of the clip's ``gt_q`` (computed when None)."""
+    T = clip.num_frames
+    n = int(np.ceil(T / PAD) * PAD)
+    q, gq = np.asarray(q[:T], np.float32), np.asarray(clip.gt_q, np.float32)
+    xpos, xmat, feet = clip_geometry(model, q, n)
+    gxpos, gxmat, _ = clip_geometry(model, gq, n) if gt_geometry is None else gt_geometry
+    bodies = np.asarray(N.body_indices(model)["bodies"])  # the root (pelvis) first
+    sip = np.asarray([model.body_id(b) for b in M.SIP_BODIES])
+    R, gR = xmat[:, bodies[0]], gxmat[:, bodies[0]]
     out = {
-        "sip_deg": float(M.sip_error(kin.xmat[:, sip], gkin.xmat[:, sip])),
-        "ang_deg": float(M.angular_error(kin.xmat[:, 1:], gkin.xmat[:, 1:])),
-        "mesh_mm": float(M.mpjpe_root_frame(kin.xpos[:, bodies], gkin.xpos[:, bodies], R, gR)),
+        "sip_deg": float(M.sip_error(xmat[:, sip], gxmat[:, sip])),
+        "ang_deg": float(M.angular_error(xmat[:, 1:], gxmat[:, 1:])),
+        "mesh_mm": float(M.mpjpe_root_frame(xpos[:, bodies], gxpos[:, bodies], R, gR)),
         "trans_m": float(M.mean_translation_error(q[:, :3], gq[:, :3])),
     }
-    feet = jax.vmap(lambda x: P.site_positions(model, x, model.topo.contact_sites))(q)
-    pred = {"keypoints3d": kin.xpos[:, bodies], "feet": feet,
+    pred = {"keypoints3d": xpos[:, bodies], "feet": feet,
             "grf": None if grf is None else grf[:T], "tau": None if tau is None else tau[:T],
             "contact_prob": None if prob is None else prob[:T]}
-    gt = {"keypoints3d": gkin.xpos[:, bodies], "contacts": clip.gt_contacts, "grf": clip.gt_grf, "tau": clip.gt_tau}
+    gt = {"keypoints3d": gxpos[:, bodies], "contacts": clip.gt_contacts, "grf": clip.gt_grf, "tau": clip.gt_tau}
     # the estimate's character is the clip's subject (else the nominal one); the ground truth's weight
     # is the clip's mass where it has one
     vals = M.evaluate_arrays(pred, gt, fps=float(clip.fps), mask=np.asarray(mask[:T]), pred_mass=model.total_mass,
@@ -110,16 +128,17 @@ def run(archive, params_path=None, max_clips: int | None = None, changes: dict |
             n = int(np.ceil(clip.num_frames / PAD) * PAD)
             inputs = PI.IMUInputs.from_clip(clip, model, n)
             frames += clip.num_frames
+            gt_geo = clip_geometry(model, clip.gt_q, n)  # once per clip, for every row
             for row, (cfg, zero) in variants.items():
                 m = rec(params, model, PI.zero_init(inputs) if zero else inputs, cfg)
                 forces = cfg.physics
                 per[row].append(clip_metrics(model, np.asarray(m.q), np.asarray(m.grf) if forces else None,
                                              np.asarray(m.tau) if forces else None, np.asarray(m.contact_prob),
-                                             clip, np.asarray(inputs.mask)))
+                                             clip, np.asarray(inputs.mask), gt_geo))
             if "ground truth" in rows:
                 per["ground truth"].append(clip_metrics(model, clip.gt_q, clip.gt_grf, clip.gt_tau,
                                                         clip.gt_contacts.astype(np.float32), clip,
-                                                        np.ones(clip.num_frames, bool)))
+                                                        np.ones(clip.num_frames, bool), gt_geo))
             if "pip" in rows and log is not None:
                 log(f"{name}: pip MPJPE {per['pip'][-1]['mpjpe_mm']:.1f} mm, residual "
                       f"{per['pip'][-1]['root_residual_pct_bw']:.2f} % BW", flush=True)
