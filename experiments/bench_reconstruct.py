@@ -124,7 +124,8 @@ def parse_set(items, cfg):
     return out
 
 
-def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int = 1, changes=()) -> dict:
+def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int = 1, changes=(),
+            tile: int = 0) -> dict:
     """Measure one configuration in this process; returns a JSON-able dict.
 
     ``devices`` > 1 shards the batch of clips over that many host CPU devices (the process must
@@ -136,6 +137,7 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
 
     from jmocap.methods import PhysCapConfig, get_method
     from jmocap.model import load_model
+    from jmocap.pipeline import tiled_vmap
 
     model = load_model(with_mjx=backend == "mjx")
     inputs = None
@@ -170,7 +172,9 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
     rss_setup = rss_mb()
     # the config is an ordinary argument (its static fields are part of the compiled program,
     # its physical parameters are traced), passed to the executable like the others
-    fn = jax.jit(jax.vmap(reconstruct, in_axes=(None, None, 0, None)))
+    # with ``tile``: each device's clips in tiles of ``tile`` (jmocap.pipeline.tiled_vmap, as
+    # jmocap reconstruct runs its batches)
+    fn = jax.jit(lambda p, m, i, c: tiled_vmap(lambda x: reconstruct(p, m, x, c), (i,), tile, devices))
     t0 = time.perf_counter()
     exe = fn.lower(params, model, inputs, cfg).compile()
     compile_s = time.perf_counter() - t0
@@ -190,12 +194,14 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
     return dict(batch=batch, frames=frames, backend=backend, params=source, compile_s=compile_s,
                 call_s=t, calls=len(times), fps=batch * frames / t, cores=cores,
                 fps_per_core=batch * frames / t / max(cores, 1e-9), rss_setup_mb=rss_setup,
-                rss_peak_mb=rss_mb(), finite=finite, devices=devices, changes=list(changes))
+                rss_peak_mb=rss_mb(), finite=finite, devices=devices, changes=list(changes), tile=tile)
 
 
-def in_subprocess(batch, frames, backend, min_time, timeout, devices: int = 1) -> dict:
+def in_subprocess(batch, frames, backend, min_time, timeout, devices: int = 1, tile: int = 0, changes=()) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--one", str(batch), str(frames), backend,
-           "--min-time", str(min_time), "--devices", str(devices)]
+           "--min-time", str(min_time), "--devices", str(devices), "--tile", str(tile)]
+    if changes:
+        cmd += ["--set", *changes]
     env = dict(os.environ)
     if devices > 1:
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={devices}").strip()
@@ -320,6 +326,11 @@ def main(argv=None):
     ap.add_argument("--large-frames", type=int, default=30,
                     help="frames per clip at batch 512 (extrapolated per frame; 300 takes too long)")
     ap.add_argument("--devices", type=int, default=1, help=argparse.SUPPRESS)  # with --one
+    ap.add_argument("--tile", type=int, default=None,
+                    help="clips per tile of each device's batch (jmocap.pipeline.tiled_vmap; 0: one vmap); "
+                    "default jmocap.pipeline.TILE, as jmocap reconstruct runs")
+    ap.add_argument("--tiles", action="store_true",
+                    help="only physcap and pip at batch 512 on every core, each with and without tiles")
     ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="with --one: config changes of the method (e.g. fit_iterations=5)")
     ap.add_argument("--imu", action="store_true",
@@ -327,9 +338,12 @@ def main(argv=None):
     ap.add_argument("--pip", action="store_true",
                     help="also the pip method and its variant pip_tpnet (backend columns 'pip', 'pip_tpnet')")
     args = ap.parse_args(argv)
+    from jmocap.pipeline import TILE
+
+    tile = TILE if args.tile is None else args.tile
     if args.one:
         b, f, backend = args.one
-        print(json.dumps(run_one(int(b), int(f), backend, args.min_time, args.devices, args.set)), flush=True)
+        print(json.dumps(run_one(int(b), int(f), backend, args.min_time, args.devices, args.set, tile)), flush=True)
         return
 
     sys.path.insert(0, str(HERE))
@@ -360,31 +374,40 @@ def main(argv=None):
     if args.imu:  # PIP on IMUs: batch 1 (an online stream) and 512 (throughput)
         configs += [(1, CLIP_FRAMES if not args.quick else 30, "pip_imu", 1),
                     (512 if not args.quick else 8, args.large_frames, "pip_imu", cores)]
+    configs = [(*c, tile, ()) for c in configs]
+    if args.tiles:  # one vmap over each device's clips against tiles of TILE, side by side; pip
+        # also with its per-frame fit as one vmap over the frames (fit_tile=0)
+        configs = [(512, args.large_frames, "jmocap", cores, t, ()) for t in (0, tile)] + [
+            (512, args.large_frames, "pip", cores, t, ch) for t, ch in ((0, ("fit_tile=0",)), (0, ()), (tile, ()))]
     print(f"machine: {machine()}  (OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']})", flush=True)
     rows = []
-    for b, f, backend, ndev in configs:
-        r = in_subprocess(b, f, backend, 0.5 if args.quick else args.min_time, timeout=900, devices=ndev)
+    for b, f, backend, ndev, t, ch in configs:
+        r = in_subprocess(b, f, backend, 0.5 if args.quick else args.min_time, timeout=900, devices=ndev, tile=t,
+                          changes=ch)
+        r.setdefault("tile", t)
+        if ch:
+            r["backend"] = f"{backend} ({', '.join(ch)})"
         rows.append(r)
         msg = r.get("error") or f"{r['fps']:,.1f} frames/s, compile {r['compile_s']:.0f} s, wall {r['wall_s']:.0f} s"
-        print(f"  batch {b} x {f} frames, {backend}, {ndev} device(s): {msg}", flush=True)
+        print(f"  batch {b} x {f} frames, {backend}, {ndev} device(s), tile {t}: {msg}", flush=True)
     ok = [r for r in rows if "error" not in r]
     print(f"\n{time.strftime('%Y-%m-%d %H:%M')}; reconstruct = TPNet + 6 cycle iterations per frame; "
           f"params: {ok[0]['params'] if ok else '?'}\n")
     mjx = [r for r in ok if r["backend"] == "mjx"]
     mjx_fps = max((r["fps"] for r in mjx), default=float("nan"))
     mjx_fpc = max((r["fps_per_core"] for r in mjx), default=float("nan"))
-    print("| backend | host devices | clips | frames per clip (measured) | frames/s | vs MJX backend (best) | "
+    print("| backend | host devices | clips | tile | frames per clip (measured) | frames/s | vs MJX backend (best) | "
           "CPU cores obtained | frames per CPU-second | vs MJX per CPU-second | call (s) | compile (s) | peak RSS (MB) |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         if "error" in r:
-            print(f"| {r['backend']} | {r['devices']} | {r['batch']} | {r['frames']} | failed: {r['error'][:80]} "
-                  "| | | | | | | |")
+            print(f"| {r['backend']} | {r['devices']} | {r['batch']} | {r['tile']} | {r['frames']} | "
+                  f"failed: {r['error'][:80]} | | | | | | | |")
             continue
         ext = "" if r["frames"] == CLIP_FRAMES else " (extrapolated per frame)"
         vs = f"{r['fps'] / mjx_fps:,.0f}x" if mjx else "-"
         vs_c = f"{r['fps_per_core'] / mjx_fpc:,.0f}x" if mjx else "-"
-        print(f"| {r['backend']} | {r['devices']} | {r['batch']} | {r['frames']}{ext} | {r['fps']:,.1f} | {vs} | "
+        print(f"| {r['backend']} | {r['devices']} | {r['batch']} | {r['tile']} | {r['frames']}{ext} | {r['fps']:,.1f} | {vs} | "
               f"{r['cores']:.2f} | {r['fps_per_core']:,.1f} | {vs_c} | "
               f"{r['call_s']:.2f} | {r['compile_s']:.1f} | {r['rss_peak_mb']:,.0f} |")
     jm = [r for r in ok if r["backend"] == "jmocap"]
@@ -399,9 +422,19 @@ def main(argv=None):
             r = big["fps"] / mjx_fps
             print(f"  >= 100x the MJX backend: {r:,.0f}x  {'met' if r >= 100 else 'NOT met'}"
                   + (f" (same batch 1: {same[0]['fps'] / mjx_fps:,.0f}x)" if same else ""))
+    if args.tiles:
+        for m in ("jmocap", "pip"):
+            by = {r["tile"]: r for r in ok if r["backend"] == m}
+            if 0 in by and tile in by:
+                print(f"  {m}: tiles of {tile} / one vmap = {by[tile]['fps'] / by[0]['fps']:.2f}x")
+        old = [r for r in ok if r["backend"].startswith("pip (")]
+        new = [r for r in ok if r["backend"] == "pip" and r["tile"] == tile]
+        if old and new:
+            print(f"  pip, tiles of {tile} and fit tiles / one vmap everywhere = {new[0]['fps'] / old[0]['fps']:.2f}x")
     pp = [r for r in ok if r["backend"] in ("pip", "pip_tpnet")]
     for r in pp:
-        ref = [j for j in jm if j["batch"] == r["batch"] and j["devices"] == r["devices"]]
+        ref = [j for j in jm if j["batch"] == r["batch"] and j["devices"] == r["devices"]
+               and j["tile"] == r["tile"]]
         ratio = f"{r['fps'] / ref[0]['fps']:.2f}x physcap's" if ref else "no physcap row at this batch"
         print(f"  {r['backend']}, batch {r['batch']}, {r['devices']} host device(s): {r['fps']:,.0f} frames/s "
               f"({'met' if r['fps'] >= 500 else 'NOT met'}: >= 500), {ratio}")

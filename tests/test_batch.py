@@ -640,3 +640,27 @@ def test_a_signal_ends_the_run_with_a_summary(xla_cache, first_run, params, tmp_
     rerun = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr
     assert json.loads((out / "summary.json").read_text())["interrupted"] is None
+
+
+def test_tiled_vmap_equals_vmap_for_any_tile_and_groups():
+    """jmocap.pipeline.tiled_vmap against jax.vmap: a pytree of arguments, tiles that do and do
+    not divide a group (remainders), one and two groups, tile 0 and a tile larger than a group;
+    a batch that the groups do not divide is refused."""
+    import jax.numpy as jnp
+
+    from jmocap.pipeline import tiled_vmap
+
+    def f(a, b):
+        return {"s": jnp.sin(a) * b["w"] + jnp.sum(b["v"]), "v": b["v"][::-1] * a}
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=12).astype(np.float32)
+    b = {"w": rng.normal(size=12).astype(np.float32), "v": rng.normal(size=(12, 3)).astype(np.float32)}
+    want = jax.vmap(f)(a, b)
+    for tile, groups in ((0, 1), (5, 1), (4, 1), (4, 2), (5, 2), (6, 2), (64, 2)):
+        got = jax.jit(lambda x, y, t=tile, g=groups: tiled_vmap(f, (x, y), t, g))(a, b)
+        for k in want:
+            np.testing.assert_allclose(np.asarray(got[k]), np.asarray(want[k]), rtol=1e-6, atol=1e-6,
+                                       err_msg=f"tile {tile}, groups {groups}, {k}")
+    with pytest.raises(ValueError, match="cannot be split into 5 equal groups"):
+        tiled_vmap(f, (a, b), 2, 5)

@@ -196,12 +196,14 @@ def test_per_frame_jacobians_match_autodiff():
         np.testing.assert_allclose(np.asarray(j_c), np.asarray(auto_c), atol=1e-9 * float(jnp.max(jnp.abs(auto_c))))
 
 
-def test_per_frame_fit_recovers_poses_from_their_projections():
+@pytest.mark.parametrize("tile", [0, 5])
+def test_per_frame_fit_recovers_poses_from_their_projections(tile):
     """Exact keypoints of ground-truth frames, a start 10 cm and about 10 degrees per joint away
     (root and hinges), the truth as prior: the per-frame Levenberg-Marquardt stage brings every
     frame back to within a pixel of its keypoints and 1 cm of its joints. Without the floor
     margin: the simulated soles rest at z = 0 (a few mm into MuJoCo's soft floor), where the
-    default margin (5 mm) deliberately lifts them; the solver, not that choice, is under test."""
+    default margin (5 mm) deliberately lifts them; the solver, not that choice, is under test.
+    Fitted all at once and in tiles of 5 frames (two tiles and a remainder of 2)."""
     clip, model = _walk()
     config = get_method("trajopt").make_config(floor_margin_m=0.0)
     prob, q, _ = _problem(model, clip, 20, 12, config)
@@ -210,7 +212,7 @@ def test_per_frame_fit_recovers_poses_from_their_projections():
     start[:, :3] += rng.normal(0, 0.1, (12, 3))
     start[:, model.topo.hinge_qadr] += rng.normal(0, 0.15, (12, len(model.topo.hinge_qadr)))
     q1 = jax.jit(lambda s: TO.per_frame_fit(model, s, prob, config, 30, config.gm_scale_initial,
-                                            config.gm_scale))(jnp.asarray(start))
+                                            config.gm_scale, tile=tile))(jnp.asarray(start))
     kp = lambda x: jax.vmap(lambda y: P.keypoints(model, y, "body25"))(x)  # noqa: E731
     cam = ClipInputs.from_clip(clip).camera
     px = np.linalg.norm(np.asarray(project(cam, kp(q1)) - prob.keypoints[..., :2]), axis=-1)

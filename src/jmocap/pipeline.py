@@ -72,14 +72,44 @@ def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry, first, co
     return carry, ChunkResult(motion, kp3d)
 
 
-@partial(jax.jit, static_argnames=("config", "method", "history"))
+#: clips per tile of a batch (:func:`reconstruct_chunks`): measured fastest on a 2-core CPU for
+#: ``pip`` (16-32) and faster than one ``vmap`` over 128 clips for ``physcap`` too
+#: (docs/performance.md, "Tiles")
+TILE = 32
+
+
+@partial(jax.jit, static_argnames=("config", "method", "history", "tile", "groups"))
 def reconstruct_chunks(params, models: Model, inputs: ClipInputs, carry, first, *, config, method: str,
-                       history: int) -> tuple[Any, ChunkResult]:
+                       history: int, tile: int = TILE, groups: int = 1) -> tuple[Any, ChunkResult]:
     """:func:`reconstruct_chunk` over a batch of clips (leading axis of everything but
-    ``params``); ``config`` is compiled in (hashable: Python numbers, see :func:`constant_config`)."""
-    return jax.vmap(
-        lambda m, i, c, f: reconstruct_chunk(params, m, i, c, f, config, method=method, history=history)
-    )(models, inputs, carry, first)
+    ``params``); ``config`` is compiled in (hashable: Python numbers, see :func:`constant_config`).
+
+    The batch is ``groups`` equal groups of consecutive clips (one per device the batch is
+    sharded over), each run in tiles of ``tile`` clips (``lax.map`` over the tiles, ``vmap``
+    within one; 0: one ``vmap`` over the group): the same results, and on a CPU faster,
+    because a tile's working set stays in cache. The groups are ``vmap``-ed, so a group's tiles
+    run on its own device."""
+    def one(m, i, c, f):
+        return reconstruct_chunk(params, m, i, c, f, config, method=method, history=history)
+
+    return tiled_vmap(one, (models, inputs, carry, first), tile, groups)
+
+
+def tiled_vmap(fn, args: tuple, tile: int, groups: int = 1):
+    """``jax.vmap(fn)(*args)`` (leading axis B of every leaf of ``args``), computed as ``groups``
+    equal groups of consecutive rows, ``vmap``-ed (so a batch sharded over ``groups`` devices
+    keeps each group on its device), each in tiles of ``tile`` rows (``lax.map``, a sequential
+    loop over tiles with ``vmap`` within one). The same values; on a CPU a tile's working set
+    stays in cache, which for the reconstruction methods is faster than one ``vmap`` over
+    hundreds of clips (docs/performance.md, "Tiles"). ``tile`` 0 or at least B / groups: one ``vmap``."""
+    B = jax.tree.leaves(args)[0].shape[0]
+    if groups < 1 or B % groups:
+        raise ValueError(f"a batch of {B} rows cannot be split into {groups} equal groups")
+    if not 0 < tile < B // groups:
+        return jax.vmap(fn)(*args)
+    split = jax.tree.map(lambda x: x.reshape(groups, B // groups, *x.shape[1:]), args)
+    out = jax.vmap(lambda a: jax.lax.map(lambda r: fn(*r), a, batch_size=tile))(split)
+    return jax.tree.map(lambda x: x.reshape(B, *x.shape[2:]), out)
 
 
 def constant_config(config):
@@ -133,6 +163,7 @@ class Reconstructor:
     ``params``, ``method`` and ``config`` are fixed for the life of the object (the compiled code
     is cached per chunk shape by :func:`reconstruct_chunks`); each clip gets its own character
     (:func:`subject_model`), passed as an array argument (no recompilation per subject).
+    A device's ``batch`` clips run in tiles of ``tile`` (:func:`tiled_vmap`).
     """
 
     def __init__(
@@ -145,15 +176,17 @@ class Reconstructor:
         bucket: int = 64,
         batch: int = 8,
         devices: Sequence[jax.Device] | None = None,
+        tile: int = TILE,
     ):
-        if min(chunk, bucket, batch) < 1:
-            raise ValueError(f"chunk, bucket and batch must be >= 1, got {chunk}, {bucket}, {batch}")
+        if min(chunk, bucket, batch) < 1 or tile < 0:
+            raise ValueError(f"chunk, bucket and batch must be >= 1 and tile >= 0, got {chunk}, {bucket}, "
+                             f"{batch}, {tile}")
         self.method = methods.get_method(method)
         if not isinstance(config, self.method.config_type):
             raise TypeError(f"method {self.method.name!r} needs a {self.method.config_type.__name__}, "
                             f"got {type(config).__name__}")
         self.config = config
-        self.chunk, self.bucket, self.batch = int(chunk), int(bucket), int(batch)
+        self.chunk, self.bucket, self.batch, self.tile = int(chunk), int(bucket), int(batch), int(tile)
         self.devices = list(devices) if devices is not None else jax.devices()
         mesh = Mesh(np.array(self.devices), ("clips",))
         self._rows = NamedSharding(mesh, PartitionSpec("clips"))
@@ -216,7 +249,7 @@ class Reconstructor:
             )
             carry, res = reconstruct_chunks(
                 self.params, models, whole.replace(keypoints=keypoints, mask=mask), carry, first,
-                config=self._config, method=self.method.name, history=H,
+                config=self._config, method=self.method.name, history=H, tile=self.tile, groups=len(self.devices),
             )
             if pending is not None:  # fetch the previous chunk while this one runs
                 fetched.append(_fields(jax.device_get(pending)))
@@ -244,6 +277,8 @@ def _fields(res: ChunkResult) -> dict[str, np.ndarray]:
 __all__ = [
     "ChunkResult",
     "Reconstructor",
+    "TILE",
+    "tiled_vmap",
     "chunk_frames",
     "chunk_plan",
     "constant_config",

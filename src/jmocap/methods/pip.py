@@ -74,6 +74,10 @@ class PIPConfig(KinematicConfig):
     # jmocap.methods.contact_estimation; reads 6 frames ahead; BODY_25 only: it reads heels and
     # toes), "tpnet" (TPNet's contact head), or "auto": "mlp" where the layout is BODY_25, else "tpnet"
     contact_source: str = static("auto")
+    # frames of each clip per tile of the per-frame fit (trajopt.per_frame_fit's ``tile``: a tile
+    # holds this many frames of every clip of a vmapped batch; 0: all frames at once). The same
+    # result; 4 was the fastest at 128 clips per device (docs/performance.md)
+    fit_tile: int = static(4)
     fit_iterations: int = static(15)  # Levenberg-Marquardt iterations per frame ("fit"; 30 gave the same accuracy on the validation archive)
     # the fit's pull towards TPNet's root-relative joints (trajopt's w_pose, 2 there). 1 since the
     # fine-tuned TPNet, on data/val: MPJPE 91.4 -> 90.5 mm (0.5: 89.8, root +4 mm; 5: 93.1; 10: 95.3)
@@ -304,7 +308,8 @@ def reference_poses(model: Model, inputs: ClipInputs, tp, prob: Array, config: P
         # before it (trajopt uses the whole clip's; a chunk must see what the whole clip sees)
         prob_t = prob_t.replace(unit_px=TO.person_height_px_causal(prob_t.keypoints, prob_t.mask, SCALE_FRAMES) / 100.0)
         return TO.per_frame_fit(model, tp.q_hat, prob_t, tcfg, config.fit_iterations, tcfg.gm_scale_initial,
-                                tcfg.gm_scale, contacts=prob_t.contacts if config.fit_contacts else None)
+                                tcfg.gm_scale, contacts=prob_t.contacts if config.fit_contacts else None,
+                                tile=config.fit_tile)
     raise ValueError(f"unknown reference_source {config.reference_source!r} (tpnet, fit)")
 
 

@@ -87,6 +87,7 @@ class TrajOptConfig(KinematicConfig):
     of error that costs as much as one unit of the reprojection term)."""
 
     frame_iterations: int = static(30)  # Levenberg-Marquardt iterations of the per-frame fit
+    frame_tile: int = static(64)  # frames per tile of the per-frame fit (per_frame_fit's tile; 0: all at once)
     min_keypoints: int = static(8)  # confident keypoints a frame needs to be fitted on its own
     kinematic_iterations: int = static(60)  # L-BFGS iterations of the whole-clip kinematic fit
     physics_iterations: int = static(80)  # L-BFGS iterations of the physics stage
@@ -710,7 +711,8 @@ def robust_height(h: Array, config: TrajOptConfig) -> tuple[Array, Array]:
 
 
 def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, iterations: int,
-                  gm_start, gm_end, depth: Array | None = None, contacts: Array | None = None) -> Array:
+                  gm_start, gm_end, depth: Array | None = None, contacts: Array | None = None,
+                  tile: int = 0) -> Array:
     """Every frame fitted on its own (no temporal terms) by Levenberg-Marquardt on
     the configuration manifold (steps ``q (+) dq``, analytic Jacobians): the robust
     reprojection (Geman-McClure, iteratively reweighted, its scale annealed from ``gm_start``
@@ -735,6 +737,11 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
     (:func:`robust_height`): with the camera known, a foot on the floor fixes the frame's depth,
     which the body's image otherwise leaves to its pose (a limb turned towards the camera and a
     body further away project alike).
+
+    ``tile`` > 0 fits the frames in tiles of that many (``lax.map`` over tiles, ``vmap`` within
+    one; under an enclosing ``vmap`` over clips a tile holds that many frames of every clip):
+    the same result, faster on a CPU, whose cache then holds a tile's working set
+    (docs/performance.md). 0 fits all frames at once.
     Returns (T, nq)."""
     cam = Camera(prob.intrinsics, jnp.zeros(2, q.dtype), prob.extrinsics)
     conf = prob.keypoints[..., 2]
@@ -744,20 +751,22 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
     units = jnp.broadcast_to(prob.unit_px, q.shape[:1])  # the clip's scale, or one per frame
 
     def solve_frame(qt, prior, kp, cf, unit, dz, lab):
-        def robust(uv, kp, cf, c):
+        def robust(uv, c):
             r2 = jnp.sum((uv - kp) ** 2, -1) / unit**2
             return config.w_reproj * jnp.sum(cf * geman_mcclure(r2, c)), r2
 
-        def cost(qt, prior, kp, cf, c):
-            uv, _, other, _ = _frame_residuals(model, qt, prior, cam, config, dz, lab)
-            return robust(uv, kp, cf, c)[0] + jnp.sum(other**2)
+        def linearise(qt):
+            return _frame_residuals(model, qt, prior, cam, config, dz, lab)
 
         def step(k, s):
-            qt, lam = s
+            # ``s`` holds the current point's residuals and Jacobians: a trial point's
+            # linearisation is computed once and, when the step is accepted, is the next step's
+            # (one forward-kinematics pass per iteration instead of two)
+            qt, lin, lam = s
+            uv, j_uv, other, j_other = lin
             frac = k / jnp.maximum(iterations - 1, 1)
             c = gm_start * (gm_end / gm_start) ** frac
-            uv, j_uv, other, j_other = _frame_residuals(model, qt, prior, cam, config, dz, lab)
-            f_old, r2 = robust(uv, kp, cf, c)
+            f_old, r2 = robust(uv, c)
             f_old = f_old + jnp.sum(other**2)
             w = jnp.sqrt(config.w_reproj * cf * (c * c / (c * c + r2)) ** 2)  # IRLS: sqrt(rho')
             r = jnp.concatenate([(w[:, None] * (uv - kp) / unit).ravel(), other])
@@ -769,18 +778,28 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
             # pool when the batch is sharded over host devices (physics.linalg)
             dq = -cho_solve(cholesky(H + lam * jnp.diag(D)), g)
             q_new = P.integrate_positions(model, qt, dq, 1.0)
-            f_new = cost(q_new, prior, kp, cf, c)
+            lin_new = linearise(q_new)
+            f_new = robust(lin_new[0], c)[0] + jnp.sum(lin_new[2] ** 2)
             ok = jnp.isfinite(f_new) & (f_new < f_old)
             qt = jnp.where(ok, q_new, qt)
+            lin = jax.tree.map(lambda a, b: jnp.where(ok, a, b), lin_new, lin)
             lam = jnp.clip(jnp.where(ok, lam * 0.3, lam * 10.0), 1e-7, 1e7)
-            return qt, lam
+            return qt, lin, lam
 
-        qt, _ = jax.lax.fori_loop(0, iterations, step, (qt, jnp.asarray(1e-3, qt.dtype)))
+        if iterations == 0:
+            return qt
+        qt, _, _ = jax.lax.fori_loop(0, iterations, step, (qt, linearise(qt), jnp.asarray(1e-3, qt.dtype)))
         return qt
 
-    fitted = jax.vmap(solve_frame, in_axes=(0, 0, 0, 0, 0, None if depth is None else 0,
-                                            None if contacts is None else 0))(
-        q, prob.prior_rr, target, conf, units, depth, contacts)
+    args = (q, prob.prior_rr, target, conf, units, depth, contacts)
+    if tile > 0:
+        # in tiles of ``tile`` frames (times the clips of an enclosing vmap): the fit is bound by
+        # memory traffic (each LM step streams every frame's Jacobians, normal matrix and
+        # column-by-column Cholesky), which stays in the CPU's cache for a tile
+        fitted = jax.lax.map(lambda a: solve_frame(*a), args, batch_size=tile)
+    else:
+        fitted = jax.vmap(solve_frame, in_axes=(0, 0, 0, 0, 0, None if depth is None else 0,
+                                                None if contacts is None else 0))(*args)
     # frames without enough evidence: from their neighbours
     T = q.shape[0]
     t = jnp.arange(T)
@@ -861,7 +880,7 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     f0 = lambda x, pr: objective(model, x, pr, per_frame, physics=False, heights=False)  # noqa: E731
     q1 = per_frame_fit(model, q_init, prob, per_frame, config.frame_iterations, config.gm_scale_initial,
                        config.gm_scale, depth_track(q_init, prob, config),
-                       prob.contacts if config.frame_contacts else None)
+                       prob.contacts if config.frame_contacts else None, tile=config.frame_tile)
     before = f0(x0, prob)
     x1, base = from_q(model, q1)
     prob = prob.replace(base_quat=base)
