@@ -670,6 +670,15 @@ def test_evaluate_arrays_keys_follow_the_inputs_and_are_never_nan():
     contacts[1] = 0
     r = M.evaluate_arrays({"grf": grf}, {"contacts": contacts}, fps=30.0, pred_mass=10.0)
     assert r["grf_ballistic_pct_bw"] == pytest.approx(100.0, abs=TOL)
+    # a ground-truth flight held up by the ground truth's own root residual is not ballistic:
+    # gt tau[:3] of 0.5 % BW (10 kg: 0.4905 N) keeps the frame, 2 % BW removes it (then no
+    # flight frame is left and the metric is undefined)
+    for residual_n, kept in ((0.4905, True), (1.962, False)):
+        gt_tau = np.zeros((2, 47), np.float32)
+        gt_tau[1, 2] = residual_n
+        r = M.evaluate_arrays({"grf": grf}, {"contacts": contacts, "tau": gt_tau}, fps=30.0,
+                              pred_mass=10.0, gt_mass=10.0)
+        assert ("grf_ballistic_pct_bw" in r) == kept
     bad = pred.copy()
     bad[1, 1, 2] = np.nan
     with pytest.raises(ValueError, match="pred 'keypoints3d' has non-finite values, first at frame 1"):

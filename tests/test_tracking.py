@@ -352,3 +352,20 @@ def test_lookahead_and_history_follow_the_config():
     _, literal = load_run_params(None, method="pip_tpnet")
     assert m.lookahead(literal) == 0
     assert m.history(config) == 2 * config.nets.window - 1 + config.smoothing_radius
+
+
+@pytest.mark.parametrize("per_foot", [False, True])
+def test_contact_per_foot_lets_a_loaded_foot_push_on_its_heel(enable_x64, per_foot):
+    """Standing flat 1 cm above the floor, the estimate loads the left toe only: by
+    point (PIP's rule) only the left toe's two points may push; per foot (``contact_per_foot``)
+    the left heel's too, and never the unloaded right foot's, nor a point above ``contact_near_m``."""
+    model = load_model()
+    config = pip.PIPConfig(contact_per_foot=per_foot)
+    for shift, near in ((0.01, True), (0.05, False)):
+        q, bodies, pos = _standing(model, shift)
+        ref = pip.Reference(q, jnp.zeros(model.nv), pos, jnp.zeros((bodies.size, 3)), jnp.zeros(3),
+                            jnp.array([0.1, 0.9, 0.2, 0.3]))
+        state = pip.CycleState(q, jnp.zeros(model.nv), jnp.zeros((4, 3)))
+        _, on = pip.step_qp(model, state, ref, 1.0 / 60, config)
+        want = np.array([per_foot, per_foot, True, True, False, False, False, False]) & near
+        np.testing.assert_array_equal(np.asarray(on), want)

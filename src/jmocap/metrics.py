@@ -59,6 +59,11 @@ CONTACT_MAX_STEP_M = 0.02  # Rempe et al. [001] Sec. 3.2 contact labelling rule
 CONTACT_MAX_HEIGHT_M = 0.05
 PNP_TOLERANCE_M = 0.001  # PNP: penetration deeper than 1 mm (the paper gives no tolerance)
 ZMP_MIN_NORMAL_FORCE = 0.1  # frames whose implied vertical force is below 10 % of body weight
+#: a ground-truth flight frame is ballistic only while the ground truth's own root residual (the
+#: virtual force of a simulated clip's rescue, ``gt tau[:3]``, docs/data.md) is at most this
+#: share of body weight (%): a "flight" held up by a force no person has is not a free fall, and
+#: an estimate that explains it by the feet is not wrong there
+BALLISTIC_MAX_GT_RESIDUAL_PCT_BW = 1.0
 ALIGNMENTS = ("none", "root", "procrustes")
 
 
@@ -1108,8 +1113,10 @@ def evaluate_arrays(
     undefined for this clip (e.g. ballistic GRF without flight frames); no value is NaN. Inputs
     must be finite on the real frames (ValueError naming the array and frame otherwise). Without
     estimated forces (``grf``), the GRF statistics use ``implied_force``, as [001] does for its
-    kinematic baseline. Ballistic (flight) frames are those without any ground-truth contact,
-    or, without ground-truth labels, without any estimated one.
+    kinematic baseline. Ballistic (flight) frames are those without any ground-truth contact
+    whose ground-truth root residual (``gt["tau"][:3]``, when given) is at most
+    :data:`BALLISTIC_MAX_GT_RESIDUAL_PCT_BW`, or, without ground-truth labels, those without
+    any estimated contact.
 
     The metrics run as one jitted function per combination of available inputs and shapes.
     """
@@ -1181,7 +1188,11 @@ def _metric_values(p, g, m, fps, camera, root, pred_mass, gt_mass) -> dict[str, 
         out["grf_max_pct_bw"] = grf_max(forces, pw, m)
         labels = gt_contacts if gt_contacts is not None else p.get("contact_prob")
         if labels is not None:
-            out["grf_ballistic_pct_bw"] = grf_ballistic(forces, pw, ~jnp.any(labels > 0.5, -1), m)
+            flight = ~jnp.any(labels > 0.5, -1)
+            if gt_contacts is not None and g.get("tau") is not None and gw is not None:
+                gt_residual = jnp.linalg.norm(g["tau"][:, :3], axis=-1) / gw * 100.0
+                flight = flight & (gt_residual <= BALLISTIC_MAX_GT_RESIDUAL_PCT_BW)
+            out["grf_ballistic_pct_bw"] = grf_ballistic(forces, pw, flight, m)
     if p.get("tau") is not None and pw is not None:
         out["root_residual_pct_bw"] = root_residual(p["tau"], pw, m)
     if all(p.get(k) is not None for k in ("zmp", "implied_force", "support", "feet")) and pw is not None:

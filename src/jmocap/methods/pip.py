@@ -120,6 +120,9 @@ class PIPConfig(KinematicConfig):
     contact_threshold: float = 0.5
     contact_touch_m: float = 0.0
     contact_near_m: float = 0.03
+    # support per foot: a foot whose heel or toe the estimate puts in contact may push on both
+    # (each where it is within contact_near_m of the floor); the QP decides where the load goes
+    contact_per_foot: bool = static(False)
     # --- tracking QP (PIP eq. 7; see jmocap.physics.tracking) ---
     mu: float = FRICTION_MU
     w_rotation: float = 1.0
@@ -197,7 +200,10 @@ def step_qp(model: Model, state: CycleState, ref: Reference, dt, config: PIPConf
     kin = body.kin
     pts, bodies_c, height = sole_points(model, kin)
     if in_contact is None:
-        in_contact = contact_state(height, jnp.repeat(ref.prob, 2), touch=config.contact_touch_m,
+        prob = ref.prob  # (4,) left heel, left toe, right heel, right toe
+        if config.contact_per_foot:
+            prob = jnp.repeat(jnp.maximum(prob[0::2], prob[1::2]), 2)
+        in_contact = contact_state(height, jnp.repeat(prob, 2), touch=config.contact_touch_m,
                                    near=config.contact_near_m, threshold=config.contact_threshold)
 
     # dual PD (PIP eqs. 3, 5): rotations towards the target pose; body positions towards the
