@@ -369,3 +369,25 @@ def test_contact_per_foot_lets_a_loaded_foot_push_on_its_heel(enable_x64, per_fo
         _, on = pip.step_qp(model, state, ref, 1.0 / 60, config)
         want = np.array([per_foot, per_foot, True, True, False, False, False, False]) & near
         np.testing.assert_array_equal(np.asarray(on), want)
+
+
+@pytest.mark.parametrize("name", ["kinematic", "physcap"])
+def test_reconstructor_tiles_give_the_results_of_one_vmap(name):
+    """jmocap reconstruct's engine with its batch in tiles (lax.map over tiles of 2 clips, a
+    remainder of 1) against one vmap over the batch: the same results, field by field, for the
+    three demo clips (cut to 24 frames, chunks of 12 carrying the state between them), to float32
+    rounding."""
+    from jmocap.pipeline import Reconstructor
+
+    params, config = load_run_params(None, method=name)
+    clips = [load_clip(DEMO / f"demo_{k}.npz").slice(0, 24) for k in ("walk", "run", "jump")]
+    out = {tile: Reconstructor(params, config, method=name, chunk=12, bucket=4, batch=3, devices=jax.devices()[:1],
+                               tile=tile).run(clips) for tile in (0, 2)}
+    for one, tiled in zip(out[0], out[2], strict=True):
+        for k, v in one.items():
+            if k == "diagnostics":
+                continue
+            # float32 rounding of two compiled programs, which velocities and forces (first and
+            # second differences of the poses) amplify to ~1e-4 and ~1e-3 of their range; a
+            # clip's results in another's row would differ by O(1)
+            np.testing.assert_allclose(tiled[k], v, rtol=1e-3, atol=1e-3 * (float(np.abs(v).max()) + 1e-3), err_msg=k)
