@@ -88,3 +88,11 @@ def test_eval_on_an_imu_archive(archive, tmp_path):
     assert est["pnp_pct"] == pytest.approx(100.0) and 0 <= est["contact_f1_pct"] <= 100
     assert "| **pip** |" in (out / "metrics.md").read_text()
     assert main(["eval", str(archive), "--out", str(out), "--methods", "trajopt", "--quiet"]) == 2
+
+
+def test_eval_on_an_imu_archive_reports_progress(archive, tmp_path, capsys):
+    """Without --quiet, ``jmocap eval`` on IMU clips reports each clip's pip row on stderr (its
+    progress callback once crashed on a keyword argument)."""
+    assert main(["eval", str(archive), "--out", str(tmp_path / "eval"), "--methods", "pip_imu",
+                 "--max-clips", "1"]) == 0
+    assert ": pip MPJPE " in capsys.readouterr().err

@@ -93,14 +93,13 @@ def clip_metrics(model, q, grf, tau, prob, clip, mask, gt_geometry=None) -> dict
     # is the clip's mass where it has one
     vals = M.evaluate_arrays(pred, gt, fps=float(clip.fps), mask=np.asarray(mask[:T]), pred_mass=model.total_mass,
                              gt_mass=clip.mass_kg if clip.mass_kg is not None else model.total_mass)
-    for k in ("mpjpe_mm", "jitter_km_s3", "root_residual_pct_bw", "grf_err_pct_bw", "grf_ballistic_pct_bw",
-              "skate_pct", "pnp_pct", "contact_f1_pct"):
-        out[k] = float(vals.get(k, np.nan))
+    for k, _, _ in COLS:  # the table's other columns, from the shared metrics
+        out.setdefault(k, float(vals.get(k, np.nan)))
     return out
 
 
 def run(archive, params_path=None, max_clips: int | None = None, changes: dict | None = None, rows=ROWS,
-        log=print) -> tuple[dict[str, dict[str, float]], dict[str, list[dict[str, float]]], list[str], int]:
+        log=lambda s: print(s, flush=True)) -> tuple[dict[str, dict[str, float]], dict[str, list[dict[str, float]]], list[str], int]:
     """Every row of ``rows`` (labels of :data:`METHODS`) on the clips of the IMU archive
     ``archive`` (the first ``max_clips``): ``(means per row, per-clip values per row, clip names,
     frames)``. ``changes``: fields of the physics config (:class:`jmocap.methods.pip.PIPConfig`).
@@ -141,7 +140,7 @@ def run(archive, params_path=None, max_clips: int | None = None, changes: dict |
                                                         np.ones(clip.num_frames, bool), gt_geo))
             if "pip" in rows and log is not None:
                 log(f"{name}: pip MPJPE {per['pip'][-1]['mpjpe_mm']:.1f} mm, residual "
-                      f"{per['pip'][-1]['root_residual_pct_bw']:.2f} % BW", flush=True)
+                    f"{per['pip'][-1]['root_residual_pct_bw']:.2f} % BW")
     with warnings.catch_warnings():  # a metric no clip defines (e.g. ballistic GRF without flight) is NaN
         warnings.simplefilter("ignore", RuntimeWarning)
         means = {r: {k: float(np.nanmean([p[k] for p in ps])) for k, _, _ in COLS} for r, ps in per.items()}
@@ -160,8 +159,6 @@ def table(means, rows=ROWS) -> str:
             cells.append("–" if not np.isfinite(v) else fmt.format(v))
         lines.append(f"| {'**pip**' if r == 'pip' else r} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
-
-
 
 
 def cmd_eval(args) -> int:
