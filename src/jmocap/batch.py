@@ -310,9 +310,30 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
         names = [s.name for s in sources]
         entries = [writer.entries[n] for n in names if n in writer.entries]
         skipped_files = list(getattr(sources, "skipped", []))
-    elapsed = time.perf_counter() - t0
-    ok = [e for e in entries if e["status"] == "ok"]
     summary = {
+        **run_summary(input, output, names, entries, run, skipped, time.perf_counter() - t0),
+        "skipped_files": len(skipped_files),
+        "skipped": skipped_files[:100],
+        "interrupted": None if interrupted is None else (
+            "SIGINT" if isinstance(interrupted, KeyboardInterrupt) else signal.Signals(interrupted.signum).name
+        ),
+        "devices": [str(d) for d in engine.devices],
+        "options": {**dataclasses.asdict(options), "image_size": settings["image_size"]},
+        "params_sha256": identity["params_sha256"],
+        "version": jmocap.__version__,
+    }
+    atomic_write(Path(output) / SUMMARY, (json.dumps(summary, indent=2) + "\n").encode())
+    if interrupted is not None:
+        raise interrupted
+    return summary
+
+
+def run_summary(input, output, names, entries, run: dict, skipped: int, elapsed: float) -> dict[str, Any]:
+    """The part of ``summary.json`` every archive run has (docs/formats.md): the counts over the
+    input's clips ``names`` from the manifest ``entries``, this ``run``'s counts and rates
+    (``skipped``: clips already done), the first 100 failures and the clips with warnings."""
+    ok = [e for e in entries if e["status"] == "ok"]
+    return {
         "input": str(input),
         "output": str(output),
         "clips": len(names),
@@ -330,20 +351,7 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
         },
         "failures": [{"name": e["name"], "error": e.get("error")} for e in entries if e["status"] != "ok"][:100],
         "warnings": sum(bool(e.get("warnings")) for e in ok),
-        "skipped_files": len(skipped_files),
-        "skipped": skipped_files[:100],
-        "interrupted": None if interrupted is None else (
-            "SIGINT" if isinstance(interrupted, KeyboardInterrupt) else signal.Signals(interrupted.signum).name
-        ),
-        "devices": [str(d) for d in engine.devices],
-        "options": {**dataclasses.asdict(options), "image_size": settings["image_size"]},
-        "params_sha256": identity["params_sha256"],
-        "version": jmocap.__version__,
     }
-    atomic_write(Path(output) / SUMMARY, (json.dumps(summary, indent=2) + "\n").encode())
-    if interrupted is not None:
-        raise interrupted
-    return summary
 
 
 @contextlib.contextmanager

@@ -82,11 +82,13 @@ def reconstruct_imu_archive(input, output, params, config: PI.PIPIMUConfig, *, b
         _output_folder,
         _write_bvh,
         run_identity,
+        run_summary,
     )
 
     identity = run_identity(params, config, METHOD)
     settings = {"engine": "jmocap.batch_imu", "format": RESULT_FORMAT,
                 **{k: identity[k] for k in ("method", "config", "params_sha256", "model_sha256")}}
+
     @jax.jit
     def rec(params, model, inputs, config):
         m = PI.reconstruct(params, model, inputs, config)
@@ -146,18 +148,8 @@ def reconstruct_imu_archive(input, output, params, config: PI.PIPIMUConfig, *, b
         if bar is not None:
             bar.close()
         entries = [writer.entries[n] for n in names if n in writer.entries]
-    elapsed = time.perf_counter() - t0
-    ok = [e for e in entries if e["status"] == "ok"]
-    summary = {
-        "input": str(input), "output": str(output), "clips": len(names), "ok": len(ok),
-        "failed": len(entries) - len(ok), "pending": len(names) - len(entries),
-        "frames": int(sum(e.get("frames", 0) for e in ok)),
-        "uncertified_frames": int(sum(e.get("uncertified_frames", 0) for e in ok)),
-        "run": {**run, "skipped": skipped, "seconds": round(elapsed, 3),
-                "frames_per_s": round(run["frames"] / elapsed, 2) if elapsed > 0 else None},
-        "failures": [{"name": e["name"], "error": e.get("error")} for e in entries if e["status"] != "ok"][:100],
-        "method": METHOD, "params_sha256": identity["params_sha256"], "version": jmocap.__version__,
-    }
+    summary = {**run_summary(input, output, names, entries, run, skipped, time.perf_counter() - t0),
+               "method": METHOD, "params_sha256": identity["params_sha256"], "version": jmocap.__version__}
     atomic_write(Path(output) / SUMMARY, (json.dumps(summary, indent=2) + "\n").encode())
     return summary
 
