@@ -532,8 +532,9 @@ def _reconstruct(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk", type=int, default=256, metavar="N", help="frames per chunk (default 256)")
     p.add_argument("--bucket", type=int, default=64, metavar="N",
                    help="a clip's last chunk is padded to a multiple of N frames (default 64)")
-    p.add_argument("--batch", type=int, default=8, metavar="N", help="clips per device per call (default 8; a larger batch runs in tiles of 32 clips, "
-                   "docs/performance.md)")
+    p.add_argument("--batch", type=int, default=8, metavar="N",
+                   help="clips per device per call (default 8; a larger batch runs in tiles of 32 clips, "
+                        "docs/performance.md)")
     p.add_argument("--host-devices", type=int, default=0, metavar="N",
                    help="on a CPU-only machine, split each call over N host devices, one thread each "
                         "(default 0: one per CPU core; 1: a single device)")

@@ -351,9 +351,7 @@ def losses(out: Outputs, tgt: dict[str, Array], config: IMUNetConfig, fps) -> di
     c = tgt["contacts"]
     logits = out.contact_logits
     # (weighted) binary cross-entropy: w c softplus(-l) + (1 - c) softplus(l)
-    sp_pos = jnp.maximum(-logits, 0) + jnp.log1p(jnp.exp(-jnp.abs(logits)))  # softplus(-l)
-    sp_neg = jnp.maximum(logits, 0) + jnp.log1p(jnp.exp(-jnp.abs(logits)))  # softplus(l)
-    bce = jnp.mean(config.contact_pos_weight * c * sp_pos + (1.0 - c) * sp_neg)
+    bce = jnp.mean(config.contact_pos_weight * c * jax.nn.softplus(-logits) + (1.0 - c) * jax.nn.softplus(logits))
     return {
         "leaf": l2(out.leaf, tgt["leaf"]),
         "joints": l2(out.joints, tgt["joints"]),
