@@ -252,3 +252,51 @@ def test_physics_walking_stays_upright():
     clip = S.generate_clip(1, 0, S.SynthConfig(frames=150, kinds=("walk",), physics=True))
     assert np.all(_upright(clip.gt_q[:, 3:7]) > np.cos(np.radians(30)))
     assert clip.meta["physics"]["residual_force_mean"] < 0.1
+
+
+def test_settled_start_drops_the_lead_in_and_keeps_newton_at_frame_0():
+    """``simulate_tracking(..., lead=L)`` is the run without a lead-in, its first L frames
+    dropped: the same states, the same forces on every frame after the first, and on the first
+    the full tent average, i.e. the force Newton's law gives from MuJoCo's centre of mass at the
+    lead-in's last frame and the clip's first two (within 2 % of body weight, as above)."""
+    from jmocap.data.synthetic.physics import simulate_tracking
+
+    cfg = S.SynthConfig(frames=12, kinds=("walk",), physics=True)
+    clip = S.generate_clip(2, 0, cfg)
+    ch = S.character(round(clip.height_m, 2))
+    q = np.asarray(clip.gt_q, np.float64)
+    L = 4
+    full = simulate_tracking(ch, q, clip.fps)
+    lead = simulate_tracking(ch, q, clip.fps, lead=L)
+    np.testing.assert_array_equal(lead["q"], full["q"][L:])
+    np.testing.assert_array_equal(lead["qd"], full["qd"][L:])
+    np.testing.assert_array_equal(lead["contacts"], full["contacts"][L:])
+    np.testing.assert_allclose(lead["grf"], full["grf"][L:], atol=1e-9)
+    np.testing.assert_allclose(lead["tau"], full["tau"][L:], atol=1e-9)
+    assert lead["stats"]["settle_frames"] == L
+    c = _com(ch, full["q"][L - 1:L + 2])
+    acc = (c[2] - 2 * c[1] + c[0]) * clip.fps ** 2
+    force = lead["grf"][0].sum(0) + lead["residual"][0, :3]
+    err = np.linalg.norm(force - ch.mass * (acc + [0, 0, GRAVITY])) / (ch.mass * GRAVITY)
+    assert err < 0.02, err
+    with pytest.raises(ValueError, match="lead-in"):
+        simulate_tracking(ch, q, clip.fps, lead=len(q))
+
+
+def test_generated_clips_start_settled():
+    """Every physics clip starts after ``PhysicsConfig.settle_s`` of simulated lead-in (its
+    motion's earlier frames, a held first frame before the motion's start)."""
+    from jmocap.data.synthetic.clips import _lead_in
+
+    q = np.arange(10.0)[:, None] * np.ones((1, 3))
+    np.testing.assert_array_equal(_lead_in(q, 6, 4)[:, 0], [2, 3, 4, 5])
+    np.testing.assert_array_equal(_lead_in(q, 2, 4)[:, 0], [0, 0, 0, 1])
+    np.testing.assert_array_equal(_lead_in(q, 0, 3)[:, 0], [0, 0, 0])
+    cfg = S.SynthConfig(frames=12, kinds=("stand",), physics=True)
+    assert cfg.physics_cfg.settle_frames(cfg.fps) == 15
+    clip = S.generate_clip(3, 0, cfg)
+    assert clip.meta["physics"]["settle_frames"] == 15
+    # standing after the lead-in: the feet carry the body weight from the first frame on (the
+    # stand's own sway moves it by a few % later)
+    fz = clip.gt_grf[:3, :, 2].sum(axis=1) / _weight(clip)
+    assert np.all(np.abs(fz - 1.0) < 0.01), fz

@@ -89,6 +89,14 @@ def _stance_runs(planted: np.ndarray) -> dict:
             for i, name in enumerate(CONTACT_SITES)}
 
 
+def _lead_in(q: np.ndarray, start: int, frames: int) -> np.ndarray:
+    """The ``frames`` reference frames before ``q[start]`` that the physics variant simulates and
+    drops (the settled start): the motion's own frames where it has them, before them its first
+    frame held (every motion begins with a standing segment, ``generate_motion``)."""
+    own = q[max(0, start - frames):start]
+    return np.concatenate([np.repeat(q[:1], frames - len(own), axis=0), own])
+
+
 def clip_name(index: int) -> str:
     return f"synth_{index:06d}"
 
@@ -129,13 +137,15 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
             if motion.num_frames < T:
                 raise GenerationError("motion shorter than the clip")
             start = int(rng.integers(0, motion.num_frames - T + 1))
+            q_lead = _lead_in(motion.q, start, config.physics_cfg.settle_frames(config.fps))
             motion = motion.slice(start, start + T)
             ch = motion.character
             meta: dict[str, Any] = {}
             q = motion.q
             sim = {}
             if config.physics:
-                sim = simulate_tracking(ch, q, config.fps, config.physics_cfg)
+                sim = simulate_tracking(ch, np.concatenate([q_lead, q]), config.fps, config.physics_cfg,
+                                        lead=len(q_lead))
                 q, qd = sim["q"], sim["qd"]
                 meta["physics"] = sim["stats"]
             else:

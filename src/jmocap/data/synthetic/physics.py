@@ -45,7 +45,9 @@ class PhysicsConfig:
     held still (``w_contact``, a velocity damping at ``contact_damping_hz``); edge coefficients
     regularised by ``w_force`` (per newton, relative to ``sqrt(mass)``). The rescue residual is
     on while the root is more than ``rescue_pos_m`` or ``rescue_rot_deg`` off the reference and
-    off again below ``rescue_off`` times both; it costs ``w_residual`` per newton.
+    off again below ``rescue_off`` times both; it costs ``w_residual`` per newton. ``settle_s``:
+    the settled start, seconds of the motion before the clip (a standing hold where the motion
+    has fewer) simulated and dropped, so the clip starts in equilibrium with the floor.
     """
 
     substeps_per_frame: int = 0  # 0: as many as make the step <= max_dt
@@ -67,6 +69,12 @@ class PhysicsConfig:
     contact_timeconst: float = 0.008  # MuJoCo solref time constant of the contacts (s)
     fall_height: float = 0.5  # fraction of the standing pelvis height
     fall_tilt_deg: float = 60.0
+    settle_s: float = 0.5  # lead-in simulated before the clip's first frame and dropped
+
+    def settle_frames(self, fps: float) -> int:
+        """Frames of lead-in (``settle_s`` at ``fps``) that :func:`simulate_tracking`'s caller
+        puts before the clip (docs/data.md, "The first frame")."""
+        return int(round(self.settle_s * fps))
 
 
 @functools.cache
@@ -308,9 +316,15 @@ def _rescue(on: bool, pos_err: float, rot_err: float, cfg: PhysicsConfig) -> boo
     return on
 
 
-def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: PhysicsConfig = PhysicsConfig()) -> dict:
+def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: PhysicsConfig = PhysicsConfig(),
+                      lead: int = 0) -> dict:
     """Track a kinematic motion in MuJoCo C, moved by hinge torques and contacts (a penalised
     root residual only while the root is far off the reference).
+
+    ``lead``: the first ``lead`` frames of ``q_ref`` are a lead-in, simulated and dropped: the
+    returned arrays start at ``q_ref[lead]`` (the settled start, ``PhysicsConfig.settle_s``), and
+    their first frame's forces are the full tent average over the lead-in's last substeps. The
+    character falling during the lead-in fails the simulation too.
 
     Returns, sampled at the frames (forces by :func:`tent_average`): ``q``, ``qd`` (T, nq/nv) the
     simulated states; ``tau`` (T, nv) the applied generalised forces (root residual, hinge
@@ -318,9 +332,11 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     forces on the feet, split between each foot's heel and toe sites on the floor
     (:func:`floor_split`); ``foot_force`` (T, 2, 3), ``cop`` (T, 2, 3), ``free_moment`` (T, 2) per
     foot (left, right); ``contacts`` (T, 4) contact labels by force and floor
-    (:func:`force_contact_labels`); and ``stats``.
+    (:func:`force_contact_labels`); and ``stats`` (of the returned frames).
     """
     T = len(q_ref)
+    if not 0 <= lead < T:
+        raise ValueError(f"lead-in of {lead} frames needs 0 <= lead < len(q_ref) = {T}")
     frame_dt = 1.0 / fps
     n = cfg.substeps_per_frame or max(1, int(math.ceil(frame_dt / cfg.max_dt - 1e-9)))
     dt = frame_dt / n
@@ -414,11 +430,14 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         if not np.all(np.isfinite(d.qpos)) or d.qpos[2] < z_fall or up < cos_tilt:
             raise GenerationError(f"the simulated character fell at frame {k}")
     threshold = cfg.contact_force_threshold * weight
-    tau = tent_average(sub_tau, n)
-    grf = tent_average(sub_grf, n)
-    foot_force = tent_average(sub_foot, n)
-    cop, free_moment = foot_cop_free_moment(foot_force, tent_average(sub_moment, n),
-                                            sub_mid[::n], threshold)
+    keep = slice(lead, T)
+    tau = tent_average(sub_tau, n)[keep]
+    grf = tent_average(sub_grf, n)[keep]
+    foot_force = tent_average(sub_foot, n)[keep]
+    cop, free_moment = foot_cop_free_moment(foot_force, tent_average(sub_moment, n)[keep],
+                                            sub_mid[::n][keep], threshold)
+    q_out, qd_out, q_ref = q_out[keep], qd_out[keep], q_ref[keep]
+    rescue_sub, root_err, site_z = rescue_sub[lead * n:], root_err[keep], site_z[keep]
     residual = tau[:, :6].copy()
     F = np.linalg.norm(residual[:, :3], axis=1) / weight
     Tq = np.linalg.norm(residual[:, 3:], axis=1) / (weight * ch.height)
@@ -427,6 +446,7 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     stats = dict(
         substeps=n,
         timestep=dt,
+        settle_frames=int(lead),
         friction_mu=FRICTION_MU,
         friction_cone=FRICTION_CONE,
         contact_force_threshold_bw=cfg.contact_force_threshold,
