@@ -48,6 +48,15 @@ def write_docs(text: str, doc: Path) -> None:
     doc.write_text(s)
 
 
+def _value(current, text: str):
+    """``text`` as the type of the config field's ``current`` value (bools: 1/true/yes)."""
+    if isinstance(current, bool):
+        return text.lower() in ("1", "true", "yes")
+    if isinstance(current, str):
+        return text
+    return type(current)(float(text))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--archive", default=str(ROOT / "data/imu_test_phys"))
@@ -62,7 +71,7 @@ def main(argv=None) -> int:
     from jmocap.methods.pip import PIPConfig
 
     defaults = PIPConfig()
-    changes = {k: type(getattr(defaults, k))(float(v)) for k, v in (s.split("=", 1) for s in args.set)}
+    changes = {k: _value(getattr(defaults, k), v) for k, v in (s.split("=", 1) for s in args.set)}
     command = "python experiments/eval_imu.py" + "".join(
         " " + shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     t0 = time.time()

@@ -21,7 +21,7 @@ from jmocap.methods import pip
 from jmocap.methods import stages as S
 from jmocap.model import load_model
 from jmocap.physics.qp import solve_projection_info
-from jmocap.physics.tracking import contact_state, point_bias_acceleration, solve_qp
+from jmocap.physics.tracking import TrackingWeights, contact_state, point_bias_acceleration, solve_qp
 from jmocap.pipeline import subject_model
 from jmocap.weights import load_run_params
 from qp_reference import clarabel_projection, kkt_optimal, polished_projection
@@ -150,6 +150,49 @@ def test_tracking_qp_matches_clarabel_on_cycle_states(enable_x64, stride):
                 n += 1
     assert n >= 1000 // stride, n
     assert n_kkt <= 0.02 * n, (n_kkt, n)  # Clarabel is the reference on all but a few
+
+
+def _pyramid_faces(mu):
+    return np.array([[s1, s2, mu] for s1 in (1.0, -1.0) for s2 in (1.0, -1.0)])
+
+
+def test_net_force_cone_keeps_contacts_plus_residual_in_the_pyramid(enable_x64):
+    """A target that asks the body for 2 g forward (the floor gives at most mu g) with a cheap
+    residual (weight 1 instead of 300): without the net-force rows the residual supplies the
+    rest, beyond friction; with them the net external
+    force (contacts + residual = the root's translational rows of the equation of motion) stays
+    in the pyramid, and the solution is Clarabel's optimum of the QP with the rows."""
+    from jmocap.physics.tracking import tracking_qp
+
+    clip = load_clip(DEMO / "demo_walk.npz")
+    model = subject_model(clip)
+    q = jnp.asarray(clip.gt_q[10], jnp.float64)
+    qd = jnp.asarray(clip.gt_qd[10], jnp.float64)
+    body = S.rigid_body_terms(model, q, qd)
+    pts, bodies_c, height = S.sole_points(model, body.kin)
+    bodies = pip.tracked_bodies(model)
+    acc_pos = jnp.tile(jnp.array([2 * 9.81, 0.0, 0.0]), (len(bodies), 1))
+    acc_rot = jnp.zeros(model.nv - 3)
+    on = height < 0.03
+    assert bool(on.any())
+    mass = float(np.sum(model.body_mass))
+    faces = _pyramid_faces(pip.PIPConfig().mu)
+    net = {}
+    for rows in (False, True):
+        qp = tracking_qp(model, body.kin, body.M, body.h, qd, acc_rot, bodies, acc_pos, pts, bodies_c, height, on,
+                         1 / 60, weights=TrackingWeights(residual=1.0), net_force_cone=rows)
+        assert qp.G.shape[0] == 8 * 4 + 8 + (4 if rows else 0)
+        sol = solve_qp(qp)
+        assert bool(sol.certified)
+        net[rows] = np.asarray(sol.grf.sum(0) + sol.tau[:3]) / mass
+        if rows:
+            Q = jax.tree.map(lambda a: np.asarray(a), qp)
+            x_ref, _ = polished_projection(Q.H, Q.G, Q.v, Q.lower)
+            x = np.asarray(_solve_x(qp)[0], np.float64)
+            assert _objective(Q, x) <= _objective(Q, x_ref) + 1e-8 * (1 + abs(_objective(Q, x_ref)))
+    assert np.min(faces @ net[False]) < -1.0  # the residual pushed beyond friction (m/s^2)
+    assert np.min(faces @ net[True]) >= -1e-6
+    assert net[True][0] > 0.5 * 0.8 * 9.81  # it still pushes forward, as far as friction allows
 
 
 def test_float32_cycle_is_certified_and_finite():

@@ -26,13 +26,16 @@ Objective (all terms squared residuals; weights in :class:`TrackingWeights`)::
   + k_slip sum_{p in contact} || J_p (qd / dt + qdd) + n d_p / dt^2 ||^2   sticking contact
   + k_reg  || c ||^2                                            strict convexity
 
-Constraints (``G x >= lower``, m = P K + P rows):
+Constraints (``G x >= lower``, m = P K + P rows, + 4 with ``net_force_cone``):
 
 * friction: ``c_p >= 0`` at points in contact; a point not in contact carries no force (its
   columns are zero and its coefficients are exactly 0);
 * non-penetration, *unconditional* (every point, in contact or not): the point's height after
   the semi-implicit step, ``d_p + dt n . J_p (qd + dt qdd) >= 0`` -- a point above the floor
   may always move down to it, a penetrating point is fully recovered within the step;
+* optionally (``net_force_cone``) the net external force, contacts plus residual, in the same
+  pyramid (4 rows on the root's translational rows of the equation of motion);
+
 No sliding at points in contact (PIP eq. 11 bounds the tangential velocity by ``sigma = 1 cm/s``
 with four rows per point) is a penalty here instead: ``k_slip || t . J_p (qd / dt + qdd) ||^2``
 for the two floor tangents, the tangential acceleration that would stop the point within the
@@ -147,6 +150,7 @@ def tracking_qp(
     *,
     mu=FRICTION_MU,
     weights: TrackingWeights = TrackingWeights(),
+    net_force_cone: bool = False,
 ) -> TrackingQP:
     """Assemble one tracking QP (see the module docstring; :func:`solve_tracking` solves it).
 
@@ -161,6 +165,10 @@ def tracking_qp(
       in_contact: (P,) bool contact state (forces and the no-slip penalty act only there).
       dt: the step the acceleration is integrated over.
       mu: friction coefficient of the pyramid.
+      net_force_cone: (static) add the 4 rows that keep the net external force, contacts plus
+        residual (the root's translational rows of the equation of motion, ``M[:3] qdd + h[:3]``),
+        in the same friction pyramid: the residual may make up for what the model misses, but
+        not with a force no floor could give (pulling down, or beyond friction).
     """
     dtype = M.dtype
     nv = model.nv
@@ -221,8 +229,14 @@ def tracking_qp(
     lo_fric = jnp.where(jnp.repeat(on, K), 0.0, neg_inf)
     G_pen = jnp.concatenate([Jn, jnp.zeros((P, nc), dtype)], 1)
     lo_pen = -(height + dt * (Jn @ qd)) / (dt * dt)
-    G = jnp.concatenate([G_fric, G_pen])
-    lower = jnp.concatenate([lo_fric, lo_pen])
+    G_rows, lo_rows = [G_fric, G_pen], [lo_fric, lo_pen]
+    if net_force_cone:
+        # the pyramid's faces (mu n + s1 t1 + s2 t2) . f >= 0, s1, s2 = +-1, on f / m = Mb[:3] qdd + hb[:3]
+        faces = jnp.stack([mu * normal + s1 * t1 + s2 * t2 for s1 in (1.0, -1.0) for s2 in (1.0, -1.0)])
+        G_rows.append(jnp.concatenate([faces @ Mb[:3], jnp.zeros((4, nc), dtype)], 1))
+        lo_rows.append(-(faces @ hb[:3]))
+    G = jnp.concatenate(G_rows)
+    lower = jnp.concatenate(lo_rows)
     return TrackingQP(H, g, L, v, G, lower, A_eom, hb, E, mass, on)
 
 
