@@ -21,7 +21,12 @@ from jmocap.methods import pip
 from jmocap.methods import stages as S
 from jmocap.model import load_model
 from jmocap.physics.qp import solve_projection_info
-from jmocap.physics.tracking import TrackingWeights, contact_state, point_bias_acceleration, solve_qp
+from jmocap.physics.tracking import (
+    TrackingWeights,
+    contact_state,
+    point_bias_acceleration,
+    solve_qp,
+)
 from jmocap.pipeline import subject_model
 from jmocap.weights import load_run_params
 from qp_reference import clarabel_projection, kkt_optimal, polished_projection
