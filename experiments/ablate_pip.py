@@ -66,12 +66,15 @@ def main():
 
     params, base_cfg = default_params("pip")
     changes = parse_set(args.set, base_cfg)
-    base = {**default_config_fields(), **changes}
-    methods_.resolve("pip")
+    # pip (and its variants) get the shipped pip config with the changes as their own config;
+    # other methods the weights' config
+    own = dataclasses.replace(base_cfg, **changes)
+    mine = {m: (params, own) for m in args.methods if methods_.resolve(m)[0].name == "pip"}
     clips = E.select_clips(args.archive, args.max_clips, args.seed)
     t0 = time.perf_counter()
-    res = E.evaluate(args.archive, params, base, E.EvalConfig(methods=tuple(args.methods), batch_size=args.batch_size,
-                                                              progress=False), clips=clips)
+    res = E.evaluate(args.archive, params, default_config_fields(),
+                     E.EvalConfig(methods=tuple(args.methods), batch_size=args.batch_size, progress=False),
+                     clips=clips, method_params=mine)
     dt = time.perf_counter() - t0
     for f in res.failures:
         print("FAILED", f)

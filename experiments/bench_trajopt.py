@@ -42,7 +42,8 @@ def main() -> None:
     arch = Archive(args.archive)
     names = arch.names()
     params, _ = default_params()
-    base = get_method("trajopt").make_config(default_config_fields())
+    trajopt = get_method("trajopt")
+    base = trajopt.make_config(trajopt.weights_config(default_config_fields()))
     variants = {"full": base}
     if not args.no_stages:
         variants.update({"no physics": base.replace(physics_iterations=0),

@@ -35,6 +35,44 @@ def archive(tmp_path_factory, clips):
     return root
 
 
+def test_pip_and_trajopt_take_only_the_learned_stage_from_the_weights_config(tmp_path):
+    """The shipped weights' config is physcap's cycle (iterations 6, its contact threshold and
+    mu): pip and trajopt take its learned-stage fields (layout, canonicalise, nets) and keep
+    their own physics defaults (until stop 40 pip ran physcap's 6 steps per frame instead of
+    its 2); a method's own config, and overrides given by the user, apply whole."""
+    import shutil
+
+    from jmocap import weights as W
+    from jmocap.methods.pip import PIPConfig
+    from jmocap.methods.trajopt import TrajOptConfig
+    from jmocap.nets import NetConfig
+
+    base = PhysCapConfig(iterations=6, contact_threshold=0.7, mu=0.6, canonicalise=False,
+                         nets=NetConfig(window=7))
+    for name, default in (("pip", PIPConfig()), ("pip_tpnet", None), ("trajopt", TrajOptConfig())):
+        cfg = E.method_config(base, name)
+        assert (cfg.canonicalise, cfg.nets) == (False, NetConfig(window=7)), name
+        assert cfg.contact_threshold != 0.7 and cfg.mu != 0.6, name
+        if default is not None:
+            assert (cfg.contact_threshold, cfg.mu) == (default.contact_threshold, default.mu)
+    assert E.method_config(base, "pip").iterations == PIPConfig().iterations == 2
+    assert E.method_config(base, "physcap").iterations == 6  # physcap takes every field
+    own = E.method_config(PIPConfig(iterations=3, mu=0.5), "pip", own=True)
+    assert (own.iterations, own.mu) == (3, 0.5)
+    # load_run_params: the shipped config, a config.json beside a params file, and --config
+    assert W.load_run_params(None, method="pip")[1].iterations == 2
+    assert W.load_run_params(None, '{"iterations": 4}', method="pip")[1].iterations == 4
+    params = tmp_path / "run" / "params.msgpack"
+    params.parent.mkdir()
+    shutil.copy(W.DEFAULT_PARAMS, params)
+    (params.parent / "config.json").write_text(json.dumps(
+        {"cycle": {**W.default_config_fields(), "iterations": 5, "canonicalise": True}}))
+    cfg = W.load_run_params(str(params), method="pip")[1]
+    assert cfg.iterations == 2 and cfg.canonicalise
+    assert W.load_run_params(str(params), method="physcap")[1].iterations == 5
+    assert W.load_run_params(str(params), '{"mu": 0.7}', method="pip")[1].mu == 0.7
+
+
 def test_method_configs_keep_the_trained_fields_and_change_only_their_switch():
     """Every eval name resolves through the methods registry; a method's config keeps the fields
     the weights were trained with, and each ablation differs from the full pipeline in exactly

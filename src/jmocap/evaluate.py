@@ -65,15 +65,16 @@ def method_names() -> tuple[str, ...]:
     return (*methods_.method_names(), GROUND_TRUTH)
 
 
-def method_config(base, method: str):
+def method_config(base, method: str, own: bool = False):
     """The config of ``method`` (a registered method or variant): the fields of ``base`` (the
-    config the weights were trained with; a config object or a flat dict) with the variant's
-    changes; ``None`` for ``ground_truth``."""
+    config the weights were trained with, of which the method takes those it takes from
+    weights, ``Method.from_weights``; or, ``own``, a config of this method itself, taken whole;
+    a config object or a flat dict) with the variant's changes; ``None`` for ``ground_truth``."""
     if method == GROUND_TRUTH:
         return None
     m, changes = methods_.resolve(method)
     fields = base if isinstance(base, dict) else methods_.config_dict(base)
-    return m.make_config(fields, **changes)
+    return m.make_config(fields if own else m.weights_config(fields), **changes)
 
 
 @dataclass(frozen=True)
@@ -268,7 +269,7 @@ def evaluate(
         m_params = params
         if method_params and method in method_params:
             m_params, own = method_params[method]
-            cfg = method_config(own, method)
+            cfg = method_config(own, method, own=True)
         if cfg is not None and m_params is None:
             raise ValueError(f"method {method!r} needs parameters")
         for batch in batches:

@@ -58,7 +58,7 @@ def default_params(method: str = methods.DEFAULT_METHOD):
             f"no shipped weights at {DEFAULT_PARAMS}; train them with experiments/train_default.py --ship"
         )
     m, changes = methods.resolve(method)
-    return load_params(DEFAULT_PARAMS), m.make_config(default_config_fields(), **changes)
+    return load_params(DEFAULT_PARAMS), m.make_config(m.weights_config(default_config_fields()), **changes)
 
 
 def _config_overrides(config: str) -> dict[str, Any]:
@@ -82,15 +82,19 @@ def load_run_params(params_path: str | os.PathLike | None = None, config: str | 
     """``(params, config)`` for ``method``: the shipped weights or a msgpack file, with
     ``config`` (JSON text or a JSON file, read as overrides) applied on top of the config the
     weights came with (the shipped config; a params file gets the ``config.json`` next to it,
-    a training run's folder, or the defaults). The method's variant changes come last."""
+    a training run's folder, or the defaults). Of the weights' config the method takes only the
+    fields it takes from weights (``Method.from_weights``: for ``pip`` and ``trajopt`` the
+    learned stage's, not physcap's cycle settings); every field of ``config`` applies. The
+    method's variant changes come last."""
     m, changes = methods.resolve(method)
     if params_path is None:
         params, base = default_params()[0], default_config_fields()
     else:
         params, base = load_params(params_path), {}
         beside = Path(params_path).with_name("config.json")
-        if config is None and beside.is_file():
-            config = str(beside)
+        if beside.is_file():
+            base = _config_overrides(str(beside))
+    base = m.weights_config(base)
     over = _config_overrides(config) if config is not None else {}
     nets = {**base.get("nets", {}), **over.pop("nets", {})}
     fields = {**base, **over}

@@ -69,6 +69,18 @@ class Method:
     #: whether the method runs chunk by chunk (frame t depends on frames <= t + lookahead(config):
     #: streaming-capable with that latency); False: whole clips only (trajopt)
     causal: bool = True
+    #: the config fields this method takes from the config its weights were trained with (the
+    #: shipped ``default_cycle_config.json``, a training run's ``config.json``): ``None``, every
+    #: field it knows; else only these (e.g. the learned stage's), so that another method's
+    #: settings in a shared file (physcap's ``iterations``) do not replace this method's defaults
+    from_weights: tuple[str, ...] | None = None
+
+    def weights_config(self, fields: Mapping[str, Any] | None) -> dict[str, Any]:
+        """The part of a weights' training config (a flat dict of fields) this method takes."""
+        fields = dict(fields or {})
+        if self.from_weights is None:
+            return fields
+        return {k: v for k, v in fields.items() if k in self.from_weights}
 
     def make_config(self, fields: Mapping[str, Any] | None = None, **changes: Any):
         """The method's config from a flat dict of fields (e.g. the JSON shipped with weights)

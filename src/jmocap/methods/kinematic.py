@@ -29,6 +29,11 @@ class KinematicConfig:
     nets: NetConfig = static(NetConfig())
 
 
+#: the learned stage's fields: what a method on TPNet takes from its weights' training config
+#: (``Method.from_weights``)
+LEARNED_STAGE_FIELDS = ("layout", "canonicalise", "nets")
+
+
 def init_params(key, model: Model, config: KinematicConfig = KinematicConfig()) -> dict:
     return {"tpnet": init_tpnet(key, model, config.layout, config.nets)}
 

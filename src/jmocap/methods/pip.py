@@ -48,7 +48,7 @@ from jmocap.constants import FRICTION_MU
 from jmocap.inputs import ClipInputs
 from jmocap.methods import stages as S
 from jmocap.methods.base import Method, Variant, register, register_variant, static
-from jmocap.methods.kinematic import KinematicConfig
+from jmocap.methods.kinematic import LEARNED_STAGE_FIELDS, KinematicConfig
 from jmocap.methods.kinematic import init_params as init_tpnet_params
 from jmocap.methods.physcap import CycleState, rest_state
 from jmocap.methods.physcap import init_carry as physcap_init_carry
@@ -445,6 +445,7 @@ METHOD = register(
         history=history,
         lookahead=lookahead,
         init_params=init_params,
+        from_weights=LEARNED_STAGE_FIELDS,
     )
 )
 

@@ -69,7 +69,7 @@ from jmocap.inputs import ClipInputs
 from jmocap.layouts import get_layout
 from jmocap.methods import stages as S
 from jmocap.methods.base import Method, Variant, register, register_variant, static
-from jmocap.methods.kinematic import KinematicConfig
+from jmocap.methods.kinematic import LEARNED_STAGE_FIELDS, KinematicConfig
 from jmocap.methods.kinematic import init_params as init_tpnet_params
 from jmocap.model import Model
 from jmocap.motion import Motion
@@ -1071,6 +1071,7 @@ METHOD = register(
         history=history,
         init_params=init_params,
         causal=False,
+        from_weights=LEARNED_STAGE_FIELDS,
     )
 )
 
