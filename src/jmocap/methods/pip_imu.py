@@ -93,7 +93,7 @@ class PIPIMUConfig:
 
     net: N.IMUNetConfig = static(N.IMUNetConfig())
     pip: PIP.PIPConfig = PIP.PIPConfig(smoothing_radius=6, smoothing_sigma=3.0, reference_source="tpnet",
-                                       contact_source="tpnet")
+                                       contact_source="tpnet", contact_threshold=0.5, w_slip=2.0)
     physics: bool = static(True)
 
 
