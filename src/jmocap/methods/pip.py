@@ -130,7 +130,7 @@ class PIPConfig(KinematicConfig):
     contact_per_foot: bool = static(False)
     # the net external force (contacts + residual) in the friction pyramid too (tracking_qp's
     # net_force_cone): the residual cannot pull the body down nor push it beyond friction. On
-    # data/val (stop 40): cone violations 1.11 -> 0.14 %, residual 7.26 -> 6.87 % BW, skate
+    # data/val (stop 40, at 6 steps): cone violations 1.11 -> 0.14 %, residual 7.26 -> 6.87 % BW, skate
     # 9.20 -> 9.03 %, MPJPE 83.25 -> 83.24 mm; pip_imu (imu_val_phys): residual 5.15 -> 5.04
     net_force_cone: bool = static(True)
     # --- tracking QP (PIP eq. 7; see jmocap.physics.tracking) ---
