@@ -7,6 +7,7 @@ hand-worked cases for the contact rule and unconditional non-penetration.
 
 from __future__ import annotations
 
+import functools
 from importlib.resources import files
 
 import jax
@@ -173,27 +174,31 @@ def test_net_force_cone_keeps_contacts_plus_residual_in_the_pyramid(enable_x64):
     model = subject_model(clip)
     q = jnp.asarray(clip.gt_q[10], jnp.float64)
     qd = jnp.asarray(clip.gt_qd[10], jnp.float64)
-    body = S.rigid_body_terms(model, q, qd)
-    pts, bodies_c, height = S.sole_points(model, body.kin)
     bodies = pip.tracked_bodies(model)
-    acc_pos = jnp.tile(jnp.array([2 * 9.81, 0.0, 0.0]), (len(bodies), 1))
-    acc_rot = jnp.zeros(model.nv - 3)
-    on = height < 0.03
-    assert bool(on.any())
     mass = float(np.sum(model.body_mass))
     faces = _pyramid_faces(pip.PIPConfig().mu)
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def solve(rows, q, qd):
+        body = S.rigid_body_terms(model, q, qd)
+        pts, bodies_c, height = S.sole_points(model, body.kin)
+        acc_pos = jnp.tile(jnp.array([2 * 9.81, 0.0, 0.0]), (len(bodies), 1))
+        qp = tracking_qp(model, body.kin, body.M, body.h, qd, jnp.zeros(model.nv - 3), bodies, acc_pos, pts,
+                         bodies_c, height, height < 0.03, 1 / 60, weights=TrackingWeights(residual=1.0),
+                         net_force_cone=rows)
+        return qp, solve_qp(qp), _solve_x(qp)[0]
+
     net = {}
     for rows in (False, True):
-        qp = tracking_qp(model, body.kin, body.M, body.h, qd, acc_rot, bodies, acc_pos, pts, bodies_c, height, on,
-                         1 / 60, weights=TrackingWeights(residual=1.0), net_force_cone=rows)
+        qp, sol, x = solve(rows, q, qd)
+        assert bool(qp.in_contact.any())
         assert qp.G.shape[0] == 8 * 4 + 8 + (4 if rows else 0)
-        sol = solve_qp(qp)
         assert bool(sol.certified)
         net[rows] = np.asarray(sol.grf.sum(0) + sol.tau[:3]) / mass
         if rows:
             Q = jax.tree.map(lambda a: np.asarray(a), qp)
             x_ref, _ = polished_projection(Q.H, Q.G, Q.v, Q.lower)
-            x = np.asarray(_solve_x(qp)[0], np.float64)
+            x = np.asarray(x, np.float64)
             assert _objective(Q, x) <= _objective(Q, x_ref) + 1e-8 * (1 + abs(_objective(Q, x_ref)))
     assert np.min(faces @ net[False]) < -1.0  # the residual pushed beyond friction (m/s^2)
     assert np.min(faces @ net[True]) >= -1e-6
