@@ -48,15 +48,6 @@ def write_docs(text: str, doc: Path) -> None:
     doc.write_text(s)
 
 
-def _value(current, text: str):
-    """``text`` as the type of the config field's ``current`` value (bools: 1/true/yes)."""
-    if isinstance(current, bool):
-        return text.lower() in ("1", "true", "yes")
-    if isinstance(current, str):
-        return text
-    return type(current)(float(text))
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--archive", default=str(ROOT / "data/imu_test_phys"))
@@ -68,10 +59,11 @@ def main(argv=None) -> int:
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE",
                     help="physics config fields (jmocap.methods.pip.PIPConfig's), e.g. kp_anchor=50 smoothing_radius=6")
     args = ap.parse_args(argv)
+    # the experiments' one "name=value" parser (this script's folder is on sys.path)
+    from ablate_pip import parse_set
     from jmocap.methods.pip import PIPConfig
 
-    defaults = PIPConfig()
-    changes = {k: _value(getattr(defaults, k), v) for k, v in (s.split("=", 1) for s in args.set)}
+    changes = parse_set(args.set, PIPConfig())
     command = "python experiments/eval_imu.py" + "".join(
         " " + shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     t0 = time.time()

@@ -137,13 +137,14 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
             if motion.num_frames < T:
                 raise GenerationError("motion shorter than the clip")
             start = int(rng.integers(0, motion.num_frames - T + 1))
-            q_lead = _lead_in(motion.q, start, config.physics_cfg.settle_frames(config.fps))
+            planned = motion.q
             motion = motion.slice(start, start + T)
             ch = motion.character
             meta: dict[str, Any] = {}
             q = motion.q
             sim = {}
             if config.physics:
+                q_lead = _lead_in(planned, start, config.physics_cfg.settle_frames(config.fps))
                 sim = simulate_tracking(ch, np.concatenate([q_lead, q]), config.fps, config.physics_cfg,
                                         lead=len(q_lead))
                 q, qd = sim["q"], sim["qd"]
