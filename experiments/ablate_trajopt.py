@@ -83,7 +83,8 @@ def main():
         out = TO.fit(model, TO.problem(model, inputs, tp.q_hat, prob_c, config), q0, config)
         kp = lambda q: jax.vmap(lambda x: P.keypoints(model, x, config.layout))(q)  # noqa: E731
         feet = jax.vmap(lambda x: P.site_positions(model, x, model.topo.contact_sites))(out.q)
-        return kp(q0), kp(out.q_kinematic), kp(out.q), out.contacts, out.diagnostics, out.force, feet
+        report = TO.outputs(model, out.q, out.force, mask, inputs.fps)[3]
+        return kp(q0), kp(out.q_kinematic), kp(out.q), out.contacts, {**out.diagnostics, **report}, out.force, feet
 
     rows = []
     for i in args.clips:
@@ -102,8 +103,11 @@ def main():
         gt = clip.gt_keypoints3d
         if args.dump:
             Path(args.dump).mkdir(parents=True, exist_ok=True)
+            w_, gw_ = float(np.sum(model.body_mass)) * 9.81, (clip.mass_kg * 9.81 if clip.mass_kg else None)
             np.savez(Path(args.dump) / f"clip{i}.npz", init=k0[:T], kin=k1[:T], phys=k2[:T], gt=gt,
-                     contacts=np.asarray(used[:T]), gt_contacts=clip.gt_contacts)
+                     contacts=np.asarray(used[:T]), gt_contacts=clip.gt_contacts,
+                     grf_bw=np.asarray(force[:T]).reshape(T, 4, 2, 3).sum(2) / w_,
+                     gt_grf_bw=clip.gt_grf / (gw_ or w_))
         r = {"clip": i, "kind": clip.meta.get("kind", "?"), "s": dt}
         for name, k in (("init", k0), ("kin", k1), ("phys", k2)):
             for key, v in scores(np.asarray(k[:T], np.float64), gt, clip, roots).items():
@@ -114,6 +118,8 @@ def main():
         r["grf_err"] = float(M.grf_error(grf, clip.gt_grf, w, gt_w))
         flight = ~np.any(clip.gt_contacts > 0.5, -1)
         r["ballistic"] = float(M.grf_ballistic(grf, w, flight))
+        r["grf_max"] = float(100 * np.linalg.norm(grf.sum(1), axis=-1).max() / w)
+        r["residual"] = float(100 * diag["residual_mean_bw"])
         r["jitter"] = float(M.jitter(np.asarray(k2[:T]), float(clip.fps)))
         r["pnp"] = float(M.non_penetration(np.asarray(feet[:T])))
         r["f1"] = float(M.contact_classification(np.asarray(used[:T]), clip.gt_contacts)["f1"])

@@ -101,6 +101,37 @@ def test_equations_of_motion_against_the_simulation():
     assert err[1:-1].mean() < 0.02, err.mean()
 
 
+def test_centre_of_mass_prior_against_mujoco():
+    """The physics stage's prior on the net external force, ``need[:3] - (0, 0, 1)``, is the
+    centre of mass's acceleration over g: against central differences of MuJoCo C's
+    ``subtree_com`` of the world body along a simulated walk (to 2 % of body weight per frame on
+    average, the finite differences' O(dt)), and the term is its mean square over sigma^2, or
+    that through Geman-McClure."""
+    clip, model = _walk()
+    T = 40
+    config = get_method("trajopt").make_config(com_accel_sigma=0.2)
+    prob, q, _ = _problem(model, clip, 0, T, config)
+    geo = TO.geometry(model, q, "body25", dynamics=TO.dynamics_inputs(model, q, prob, config))
+    accel = np.asarray(geo.dynamics.need[:, :3]) - np.array([0.0, 0.0, 1.0])
+    d = mujoco.MjData(model.mj)
+    com = []
+    for qt in np.asarray(clip.gt_q[:T], np.float64):
+        d.qpos[:] = qt
+        mujoco.mj_kinematics(model.mj, d)
+        mujoco.mj_comPos(model.mj, d)
+        com.append(d.subtree_com[0].copy())
+    com = np.asarray(com)
+    ref = (com[2:] - 2 * com[1:-1] + com[:-2]) * float(clip.fps) ** 2 / 9.81
+    err = np.linalg.norm(accel[1:-1] - ref, axis=-1)
+    assert err.mean() < 0.02, err.mean()
+    r2 = np.sum(accel**2, -1) / 0.2**2
+    np.testing.assert_allclose(float(TO.com_accel_term(geo.dynamics, prob, config.replace(com_accel_robust=0.0))),
+                               np.mean(r2), rtol=1e-4)
+    c2 = 3.0**2  # Geman-McClure: c^2 r^2 / (c^2 + r^2)
+    np.testing.assert_allclose(float(TO.com_accel_term(geo.dynamics, prob, config.replace(com_accel_robust=3.0))),
+                               np.mean(c2 * r2 / (c2 + r2)), rtol=1e-4)
+
+
 def _problem(model, clip, start, frames, config, dtype=jnp.float32):
     """A trajopt problem of a ground-truth window: exact keypoints (its own projection,
     confidence 1), ground-truth contacts, the ground truth as prior."""

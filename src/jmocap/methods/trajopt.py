@@ -14,7 +14,10 @@ character (its bone lengths, joint limits and mass distribution), in two stages:
    * a prior towards TPNet's root-relative 3D joints (their ``E_data``: it holds the depth that
      one view cannot see) and joint-limit penalties from the model;
    * smoothness: 3D joint accelerations (their ``E_acc``), and in the physics stage the change
-     of the root wrench the motion needs from frame to frame (the centre of mass's jerk);
+     of the root wrench the motion needs from frame to frame (the centre of mass's jerk) and a
+     robust prior on the centre of mass's acceleration (the net external force minus the
+     weight: the 2D evidence fixes the path only to centimetres, whose 30 fps second
+     differences are noise of metres per second squared);
    * contacts (their ``E_cont``, ``E_floor``): a foot point labelled in contact stays still and
      its sole lies on the floor; no sole point is below the floor, labelled or not.
 
@@ -136,6 +139,9 @@ class TrajOptConfig(KinematicConfig):
     dynamics_sigma: float = 0.05  # body weights (force), body weight x 1 m (torque)
     w_wrench_rate: float = 10.0  # smooth external forces (the root wrench the motion needs)
     wrench_rate_sigma: float = 0.3  # body weights per frame
+    w_com_accel: float = 100.0  # prior on the external force: the centre of mass accelerates little
+    com_accel_sigma: float = 0.15  # of |c''| / g, i.e. of the net external force minus the weight, body weights
+    com_accel_robust: float = 3.0  # Geman-McClure scale of that residual, in com_accel_sigma (0: quadratic)
     w_stay: float = 0.2  # pull of the physics stage towards the kinematic fit
     stay_sigma_m: float = 0.03
     force_regularisation: float = 1e-3  # of the edge coefficients (body weights): unique forces
@@ -516,6 +522,18 @@ def wrench_rate_term(fd: FrameDynamics, prob: Problem, config: TrajOptConfig) ->
     return _frames_mean(d, m[1:] * m[:-1])
 
 
+def com_accel_term(fd: FrameDynamics, prob: Problem, config: TrajOptConfig) -> Array:
+    """Prior on the net external force the motion needs: ``need[:3] - (0, 0, 1) = c'' / g`` (body
+    weights), the centre of mass's acceleration. The 2D evidence fixes the centre of mass's
+    path only to centimetres, and finite differences of that at 30 fps are accelerations of
+    metres per second squared, which the full-body dynamics can always balance (limb motion
+    absorbs the torque): without a prior the estimated horizontal forces are noise."""
+    f = fd.need[:, :3].at[:, 2].add(-1.0)
+    r2 = jnp.sum(f**2, -1) / config.com_accel_sigma**2
+    r2 = jnp.where(config.com_accel_robust > 0, geman_mcclure(r2, config.com_accel_robust), r2)
+    return _frames_mean(r2, prob.mask.astype(r2.dtype))
+
+
 def stay_term(keypoints3d: Array, prob: Problem, config: TrajOptConfig) -> Array:
     """Squared distance of the joints (world frame) from those of the anchor (the kinematic fit)."""
     d = jnp.sum((keypoints3d - prob.anchor_kp) ** 2, (-1, -2)) / config.stay_sigma_m**2
@@ -529,7 +547,8 @@ def _weight(config: TrajOptConfig, name: str):
     return {"reproj": config.w_reproj, "pose": config.w_pose, "limits": config.w_limits,
             "accel": config.w_accel, "contact_height": config.w_contact_height,
             "contact_still": config.w_contact_vel, "floor": config.w_floor,
-            "dynamics": config.w_dynamics, "stay": config.w_stay, "wrench_rate": config.w_wrench_rate}[name]
+            "dynamics": config.w_dynamics, "stay": config.w_stay, "wrench_rate": config.w_wrench_rate,
+            "com_accel": config.w_com_accel}[name]
 
 
 def objective_terms(model: Model, x: Trajectory, prob: Problem, config: TrajOptConfig, *, physics: bool,
@@ -546,6 +565,7 @@ def objective_terms(model: Model, x: Trajectory, prob: Problem, config: TrajOptC
         terms["dynamics"] = dynamics_term(geo.dynamics, prob, config)
         terms["stay"] = stay_term(geo.keypoints3d, prob, config)
         terms["wrench_rate"] = wrench_rate_term(geo.dynamics, prob, config)
+        terms["com_accel"] = com_accel_term(geo.dynamics, prob, config)
     return terms
 
 
