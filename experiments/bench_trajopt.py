@@ -2,6 +2,11 @@
 
     .venv/bin/python experiments/bench_trajopt.py                     # 300-frame clips, batch 1 and 64
     .venv/bin/python experiments/bench_trajopt.py --frames 120 --batches 1 8   # a quick run
+    .venv/bin/python experiments/bench_trajopt.py --pipeline --batches 1 64    # as jmocap reconstruct runs it
+
+``--pipeline`` times the batch engine of ``jmocap reconstruct`` instead (:class:`jmocap.pipeline.Reconstructor`:
+the batch sharded over one host CPU device per core, ``--host-devices``), side by side with one
+device, and prints the ratio; every batch is filled up to a multiple of the device count.
 
 Clips are the held-out archive's (``data/heldout``; made by ``experiments/evaluate_default.py``
 if missing), cropped or edge-padded to ``--frames``. For each batch size: the compile time
@@ -37,7 +42,13 @@ def main() -> None:
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 64])
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--no-stages", action="store_true", help="time the full method only (one compile per batch)")
+    ap.add_argument("--pipeline", action="store_true",
+                    help="time jmocap reconstruct's batch engine with 1 and --host-devices devices")
+    ap.add_argument("--host-devices", type=int, default=0, help="with --pipeline (0: one per CPU core)")
+    ap.add_argument("--tile", type=int, default=None, help="with --pipeline: clips per tile (default: the engine's)")
     args = ap.parse_args()
+    if args.pipeline:
+        return bench_pipeline(args)
 
     arch = Archive(args.archive)
     names = arch.names()
@@ -80,6 +91,47 @@ def main() -> None:
         share = lambda x, full=full: f"{100 * x / full:.0f} %"  # noqa: E731
         print(f"| {B} | {compile_s - full * B:.0f} | {full:.2f} | {share(nophys - nofit)} | {share(full - nophys)} "
               f"| {share(nofit)} |")
+
+
+def bench_pipeline(args) -> None:
+    """Seconds per clip of the batch engine (:class:`jmocap.pipeline.Reconstructor`) on one device
+    and on ``--host-devices`` devices, side by side."""
+    import os
+
+    from jmocap.cli import set_host_devices
+
+    set_host_devices(args.host_devices)
+    from jmocap.pipeline import Reconstructor
+
+    devices = jax.devices()
+    arch = Archive(args.archive)
+    names = arch.names()
+    params, _ = default_params()
+    trajopt = get_method("trajopt")
+    cfg = trajopt.make_config(trajopt.weights_config(default_config_fields()))
+    print(f"trajopt through jmocap.pipeline.Reconstructor, {args.frames}-frame clips, "
+          f"{os.cpu_count()} cores, {len(devices)} host device(s), tile {args.tile or 'default'}")
+    print("| batch | devices | compile s | s / clip | vs 1 device |")
+    print("|---|---|---|---|---|")
+    for B in args.batches:
+        clips = [arch.load(names[i % len(names)]) for i in range(B)]
+        clips = [c.slice(0, min(args.frames, c.num_frames)) for c in clips]
+        base = None
+        for n in sorted({1, len(devices)}):
+            per_device = -(-B // n)
+            eng = Reconstructor(params, cfg, method="trajopt", bucket=args.frames, batch=per_device,
+                                devices=devices[:n], **({} if args.tile is None else {"tile": args.tile}))
+            t = time.perf_counter()
+            eng.run(clips)
+            first = time.perf_counter() - t
+            runs = []
+            for _ in range(args.repeats):
+                t = time.perf_counter()
+                eng.run(clips)
+                runs.append(time.perf_counter() - t)
+            s = min(runs) / B
+            base = base or s
+            print(f"| {B} | {n} | {first - s * B:.0f} | {s:.2f} | {base / s:.2f}x |", flush=True)
 
 
 if __name__ == "__main__":
