@@ -63,12 +63,10 @@ def main():
         jax.config.update("jax_enable_x64", True)
 
     params, base = default_params("trajopt")
-    changes = {}
-    for s in args.set:
-        k, v = s.split("=")
-        cur = getattr(base, k)
-        changes[k] = type(cur)(v) if isinstance(cur, (int, str)) and not isinstance(cur, bool) else float(v)
-    config = base.replace(**changes)
+    # the experiments' one "name=value" parser (this folder is on sys.path)
+    from ablate_pip import parse_set
+
+    config = base.replace(**parse_set(args.set, base))
     from jmocap.layouts import get_layout
 
     roots = np.asarray(get_layout(config.layout).root_indices)

@@ -114,16 +114,6 @@ def make_imu_inputs(batch: int, frames: int):
     return jax.tree.map(lambda *xs: np.stack(xs), *[one[i] for i in idx])
 
 
-def parse_set(items, cfg):
-    """``name=value`` config changes (the value parsed as the field's current type)."""
-    out = {}
-    for item in items or ():
-        k, v = item.split("=", 1)
-        cur = getattr(cfg, k)
-        out[k] = v if isinstance(cur, str) else type(cur)(float(v)) if not isinstance(cur, bool) else v == "True"
-    return out
-
-
 def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int = 1, changes=(),
             tile: int = 0) -> dict:
     """Measure one configuration in this process; returns a JSON-able dict.
@@ -160,7 +150,10 @@ def run_one(batch: int, frames: int, backend: str, min_time: float, devices: int
         reconstruct = get_method("physcap").reconstruct
         params, cfg, source = load_params(model, PhysCapConfig())
         cfg = cfg.replace(physics_backend=backend)
-    cfg = cfg.replace(**parse_set(changes, cfg))
+    # the experiments' one "name=value" parser (this folder is on sys.path)
+    from ablate_pip import parse_set
+
+    cfg = cfg.replace(**parse_set(changes or (), cfg))
     if inputs is None:
         inputs = make_inputs(batch, frames)
     if devices > 1:
