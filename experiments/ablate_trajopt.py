@@ -120,6 +120,7 @@ def main():
         r["residual"] = float(100 * diag["residual_mean_bw"])
         r["jitter"] = float(M.jitter(np.asarray(k2[:T]), float(clip.fps)))
         r["pnp"] = float(M.non_penetration(np.asarray(feet[:T])))
+        r["skate"] = float(M.foot_skate(np.asarray(feet[:T]), clip.gt_contacts))
         r["f1"] = float(M.contact_classification(np.asarray(used[:T]), clip.gt_contacts)["f1"])
         r["gnorm"] = float(diag["grad_norm"])
         rows.append(r)

@@ -119,7 +119,7 @@ class TrajOptConfig(KinematicConfig):
     accel_sigma: float = 10.0  # m/s^2
     # --- contacts ---
     contact_threshold: float = 0.5
-    w_contact_vel: float = 2.0  # labelled points stay still
+    w_contact_vel: float = 5.0  # labelled points stay still
     contact_vel_sigma: float = 0.05  # m/s
     w_contact_height: float = 2.0  # labelled points' soles on the floor
     contact_height_sigma: float = 0.01  # m
