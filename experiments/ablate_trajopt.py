@@ -99,20 +99,18 @@ def main():
         k0, k1, k2, used, diag, force, feet = jax.block_until_ready(run(params, model, inputs, gtc, args.gt_contacts, cap, config))
         dt = time.perf_counter() - t0
         gt = clip.gt_keypoints3d
+        w = float(np.sum(model.body_mass)) * 9.81
+        gt_w = clip.mass_kg * 9.81 if clip.mass_kg else w
+        grf = np.asarray(force[:T]).reshape(T, 4, 2, 3).sum(2)
         if args.dump:
             Path(args.dump).mkdir(parents=True, exist_ok=True)
-            w_, gw_ = float(np.sum(model.body_mass)) * 9.81, (clip.mass_kg * 9.81 if clip.mass_kg else None)
             np.savez(Path(args.dump) / f"clip{i}.npz", init=k0[:T], kin=k1[:T], phys=k2[:T], gt=gt,
                      contacts=np.asarray(used[:T]), gt_contacts=clip.gt_contacts,
-                     grf_bw=np.asarray(force[:T]).reshape(T, 4, 2, 3).sum(2) / w_,
-                     gt_grf_bw=clip.gt_grf / (gw_ or w_))
+                     grf_bw=grf / w, gt_grf_bw=clip.gt_grf / gt_w)
         r = {"clip": i, "kind": clip.meta.get("kind", "?"), "s": dt}
         for name, k in (("init", k0), ("kin", k1), ("phys", k2)):
             for key, v in scores(np.asarray(k[:T], np.float64), gt, clip, roots).items():
                 r[f"{name}_{key}"] = v
-        w = float(np.sum(model.body_mass)) * 9.81
-        gt_w = clip.mass_kg * 9.81 if clip.mass_kg else w
-        grf = np.asarray(force[:T]).reshape(T, 4, 2, 3).sum(2)
         r["grf_err"] = float(M.grf_error(grf, clip.gt_grf, w, gt_w))
         flight = ~np.any(clip.gt_contacts > 0.5, -1)
         r["ballistic"] = float(M.grf_ballistic(grf, w, flight))

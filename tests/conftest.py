@@ -58,6 +58,19 @@ def random_configurations(mj: mujoco.MjModel, n: int, seed: int = 0):
     return np.stack(qs), np.stack(qds)
 
 
+def mujoco_com(mj: mujoco.MjModel, q) -> np.ndarray:
+    """Whole-body centre of mass (T, 3) of configurations (T, nq) by MuJoCo C (``subtree_com``
+    of the world body)."""
+    d = mujoco.MjData(mj)
+    out = []
+    for x in np.asarray(q, np.float64):
+        d.qpos[:] = x
+        mujoco.mj_kinematics(mj, d)
+        mujoco.mj_comPos(mj, d)
+        out.append(d.subtree_com[0].copy())
+    return np.array(out)
+
+
 def central_diff(f, x, eps: float = 1e-6):
     """Jacobian of a numpy-valued ``f`` at ``x`` (float64) by central differences, shaped
     (out..., in...): the finite-difference reference of the gradient tests."""

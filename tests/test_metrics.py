@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from tests.conftest import mujoco_com
 
 from jmocap import metrics as M
 from jmocap.camera import Camera, default_extrinsics
@@ -558,8 +559,6 @@ def test_zero_moment_point_of_the_humanoid_against_its_centre_of_mass():
     """Reference: the centre of mass c from MuJoCo C (``subtree_com`` of the world). Standing
     still, the ZMP is c's floor projection; accelerating forward rigidly by a, it is
     c_x - c_z a / g (cart-table)."""
-    import mujoco
-
     import jmocap
 
     model = jmocap.load_model(with_mjx=False)
@@ -567,14 +566,7 @@ def test_zero_moment_point_of_the_humanoid_against_its_centre_of_mass():
     t = np.arange(5) / fps
     q = np.tile(model.keyframe("stand"), (5, 1))
     q[:, 0] += 0.5 * a * t**2
-    d = mujoco.MjData(model.mj)
-    com = []
-    for qt in q:
-        d.qpos[:] = qt
-        mujoco.mj_kinematics(model.mj, d)
-        mujoco.mj_comPos(model.mj, d)
-        com.append(d.subtree_com[0].copy())
-    c = np.array(com)
+    c = mujoco_com(model.mj, q)
     mass = model.total_mass
     zmp, force = jax.jit(M.zero_moment_point)(model, q.astype(np.float32), fps)
     # interior frames (central differences are exact for the quadratic): 1e-3 m, float32 differences

@@ -18,6 +18,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 import pytest
+from tests.conftest import mujoco_com
 
 from jmocap.constants import FRICTION_MU, GRAVITY
 from jmocap.data import synthetic as S
@@ -40,18 +41,6 @@ def _upright(quat):
     for q in np.asarray(quat, np.float64):
         mujoco.mju_quat2Mat(R, q / np.linalg.norm(q))
         out.append(R[8])
-    return np.array(out)
-
-
-def _com(ch, q):
-    """Whole-body centre of mass (T, 3) by MuJoCo C (``subtree_com`` of the world body)."""
-    d = mujoco.MjData(ch.mj)
-    out = []
-    for x in np.asarray(q, np.float64):
-        d.qpos[:] = x
-        mujoco.mj_kinematics(ch.mj, d)
-        mujoco.mj_comPos(ch.mj, d)
-        out.append(d.subtree_com[0].copy())
     return np.array(out)
 
 
@@ -111,7 +100,7 @@ def test_lever_split_keeps_force_and_moment_on_the_axis():
 
 def test_newton_contacts_plus_residual_explain_the_com(clip):
     ch = S.character(round(clip.height_m, 2))
-    c = _com(ch, clip.gt_q)
+    c = mujoco_com(ch.mj, clip.gt_q)
     acc = (c[2:] - 2 * c[1:-1] + c[:-2]) * clip.fps ** 2
     force = clip.gt_grf.sum(axis=1)[1:-1] + clip.gt_residual[1:-1, :3]
     err = np.linalg.norm(force - clip.mass_kg * (acc + [0, 0, GRAVITY]), axis=1) / _weight(clip)
@@ -274,7 +263,7 @@ def test_settled_start_drops_the_lead_in_and_keeps_newton_at_frame_0():
     np.testing.assert_allclose(lead["grf"], full["grf"][L:], atol=1e-9)
     np.testing.assert_allclose(lead["tau"], full["tau"][L:], atol=1e-9)
     assert lead["stats"]["settle_frames"] == L
-    c = _com(ch, full["q"][L - 1:L + 2])
+    c = mujoco_com(ch.mj, full["q"][L - 1:L + 2])
     acc = (c[2] - 2 * c[1] + c[0]) * clip.fps ** 2
     force = lead["grf"][0].sum(0) + lead["residual"][0, :3]
     err = np.linalg.norm(force - ch.mass * (acc + [0, 0, GRAVITY])) / (ch.mass * GRAVITY)

@@ -12,10 +12,11 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from tests.conftest import x64
+from tests.conftest import mujoco_com, x64
 
 from jmocap import physics as P
 from jmocap.camera import project
+from jmocap.constants import GRAVITY
 from jmocap.data.clip import load_clip
 from jmocap.inputs import ClipInputs
 from jmocap.methods import get_method
@@ -113,15 +114,8 @@ def test_centre_of_mass_prior_against_mujoco():
     prob, q, _ = _problem(model, clip, 0, T, config)
     geo = TO.geometry(model, q, "body25", dynamics=TO.dynamics_inputs(model, q, prob, config))
     accel = np.asarray(geo.dynamics.need[:, :3]) - np.array([0.0, 0.0, 1.0])
-    d = mujoco.MjData(model.mj)
-    com = []
-    for qt in np.asarray(clip.gt_q[:T], np.float64):
-        d.qpos[:] = qt
-        mujoco.mj_kinematics(model.mj, d)
-        mujoco.mj_comPos(model.mj, d)
-        com.append(d.subtree_com[0].copy())
-    com = np.asarray(com)
-    ref = (com[2:] - 2 * com[1:-1] + com[:-2]) * float(clip.fps) ** 2 / 9.81
+    com = mujoco_com(model.mj, clip.gt_q[:T])
+    ref = (com[2:] - 2 * com[1:-1] + com[:-2]) * float(clip.fps) ** 2 / GRAVITY
     err = np.linalg.norm(accel[1:-1] - ref, axis=-1)
     assert err.mean() < 0.02, err.mean()
     r2 = np.sum(accel**2, -1) / 0.2**2
