@@ -15,6 +15,7 @@ contact F1 of the labels used. The XLA compilation cache is ~/.cache/jmocap/xla-
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import time
 from pathlib import Path
@@ -54,6 +55,8 @@ def main():
     ap.add_argument("--gt-contacts", action="store_true", help="the ground-truth contact labels")
     ap.add_argument("--gt-flight", action="store_true",
                     help="the estimated labels, cleared on the ground truth's flight frames (no foot in contact)")
+    ap.add_argument("--clean-2d", action="store_true",
+                    help="oracle: the ground truth's projection as the keypoints (confidence 1), no detector noise")
     ap.add_argument("--float64", action="store_true")
     ap.add_argument("--dump", default="", help="folder: save each clip's joints per stage (npz)")
     args = ap.parse_args()
@@ -89,6 +92,11 @@ def main():
         clip = load_clip(Path(args.archive) / f"synth_{i:06d}.npz")
         T = clip.num_frames
         model = subject_model(clip)
+        if args.clean_2d:
+            from jmocap.camera import project
+
+            uv = np.asarray(project(clip.camera, clip.gt_keypoints3d))
+            clip = dataclasses.replace(clip, keypoints=np.concatenate([uv, np.ones_like(uv[..., :1])], -1).astype(clip.keypoints.dtype))
         inputs = ClipInputs.from_clip(clip, args.length)
         gtc = np.zeros((args.length, 4), np.float32)
         gtc[:T] = clip.gt_contacts
