@@ -282,6 +282,44 @@ def test_depth_track_smoother_is_the_batch_least_squares():
     np.testing.assert_allclose(got, want, atol=1e-8)
 
 
+def test_keypoint_jitter_measures_white_noise_and_sets_the_reprojection_unit():
+    """``keypoint_jitter_px`` recovers the standard deviation of white noise added to smooth
+    keypoint tracks (within the sampling error of a median of ~13,000 values), ignores frames
+    that are padding or unconfident (there the noise is 10x), and is 0 for noise-free straight
+    lines; ``problem`` takes ``max(1 % of the person's height, noise_unit x jitter)``."""
+    rng = np.random.default_rng(3)
+    T, J, sigma = 300, 25, 2.5
+    t = np.arange(T)[:, None, None] / 30.0
+    base = rng.uniform(100, 500, (1, J, 2))
+    smooth = base + 40 * np.sin(2 * np.pi * 0.5 * t + rng.uniform(0, 6, (1, J, 2)))  # 0.5 Hz swings
+    kp = np.concatenate([smooth + rng.normal(0, sigma, (T, J, 2)), np.ones((T, J, 1))], -1)
+    mask = np.ones(T, bool)
+    got = float(TO.keypoint_jitter_px(jnp.asarray(kp), jnp.asarray(mask)))
+    assert abs(got / sigma - 1) < 0.05, got
+    wild = kp.copy()
+    wild[250:, :, :2] += rng.normal(0, 10 * sigma, (50, J, 2))
+    mask_pad = mask.copy()
+    mask_pad[250:] = False
+    assert float(TO.keypoint_jitter_px(jnp.asarray(wild), jnp.asarray(mask_pad))) == pytest.approx(
+        float(TO.keypoint_jitter_px(jnp.asarray(kp[:250]), jnp.asarray(mask[:250]))), rel=1e-6)
+    wild[:, :, 2] = np.where(np.arange(T)[:, None] >= 250, 0.05, 1.0)  # unconfident instead of padding
+    assert float(TO.keypoint_jitter_px(jnp.asarray(wild), jnp.asarray(mask))) == pytest.approx(
+        float(TO.keypoint_jitter_px(jnp.asarray(kp[:250]), jnp.asarray(mask[:250]))), rel=1e-6)
+    line = np.concatenate([base + 3.0 * np.arange(T)[:, None, None], np.ones((T, J, 1))], -1)
+    assert float(TO.keypoint_jitter_px(jnp.asarray(line), jnp.asarray(mask))) == pytest.approx(0.0, abs=1e-3)
+
+    clip, model = _walk()
+    inputs = ClipInputs.from_clip(clip)
+    q_hat = jnp.asarray(clip.gt_q, jnp.float32)
+    c = jnp.zeros((clip.num_frames, 4))
+    kp = jnp.asarray(inputs.keypoints)
+    m = jnp.asarray(inputs.mask)
+    height, jitter = float(TO.person_height_px(kp, m)), float(TO.keypoint_jitter_px(kp, m))
+    for k in (0.0, 1.5, 100.0):
+        got = float(TO.problem(model, inputs, q_hat, c, TO.TrajOptConfig(noise_unit=k)).unit_px)
+        assert got == pytest.approx(max(height / 100, k * jitter), rel=1e-5)
+
+
 def test_depth_track_holds_frames_with_few_keypoints():
     """A person leaving the image: on the last 6 frames of a ground-truth window only the head
     and shoulders (8 keypoints) are seen, and the start (like TPNet's translation there) slides

@@ -103,6 +103,9 @@ class TrajOptConfig(KinematicConfig):
     w_reproj: float = 1.0
     gm_scale: float = 4.0  # Geman-McClure scale, % of person height in the image
     gm_scale_initial: float = 25.0  # the per-frame fit's first (annealed to gm_scale)
+    # the reprojection unit is at least this times the clip's measured keypoint jitter
+    # (keypoint_jitter_px; 0: off, the default: docs/method.md, "The reprojection unit")
+    noise_unit: float = 0.0
     # --- priors ---
     w_pose: float = 2.0  # TPNet's root-relative 3D joints
     pose_sigma_m: float = 0.1
@@ -243,6 +246,19 @@ def person_height_px(keypoints: Array, mask: Array) -> Array:
     at least 20 px."""
     ext = _vertical_extent(keypoints, mask)
     return jnp.maximum(jnp.nan_to_num(jnp.nanmedian(ext), nan=200.0), 20.0)
+
+
+def keypoint_jitter_px(keypoints: Array, mask: Array) -> Array:
+    """The clip's frame-to-frame keypoint noise, pixels: the standard deviation that white noise
+    would need to make the median absolute second difference of the confident keypoints over
+    real frames (``|k_{t+1} - 2 k_t + k_{t-1}|``, per coordinate; a body's own motion adds
+    little to it at video rates) what it is: ``median / (0.6745 sqrt(6))``. 0 without any."""
+    kp = jnp.asarray(keypoints)
+    ok = (kp[..., 2] > 0.1) & mask[:, None]
+    ok3 = ok[2:] & ok[1:-1] & ok[:-2]
+    d2 = jnp.abs(kp[2:, :, :2] - 2 * kp[1:-1, :, :2] + kp[:-2, :, :2])
+    med = jnp.nanmedian(jnp.where(ok3[..., None], d2, jnp.nan))
+    return jnp.nan_to_num(med, nan=0.0) / (0.6745 * np.sqrt(6.0))
 
 
 def person_height_px_causal(keypoints: Array, mask: Array, frames: int) -> Array:
@@ -864,7 +880,7 @@ def problem(model: Model, inputs: ClipInputs, q_hat: Array, contacts: Array, con
     return Problem(
         keypoints=kp, intrinsics=jnp.asarray(inputs.intrinsics, q_hat.dtype),
         extrinsics=jnp.asarray(inputs.extrinsics, q_hat.dtype),
-        unit_px=person_height_px(kp, mask) / 100.0, fps=jnp.asarray(inputs.fps, q_hat.dtype), mask=mask,
+        unit_px=jnp.maximum(person_height_px(kp, mask) / 100.0, config.noise_unit * keypoint_jitter_px(kp, mask)), fps=jnp.asarray(inputs.fps, q_hat.dtype), mask=mask,
         length=jnp.sum(mask.astype(jnp.int32)), base_quat=base, prior_rr=prior_rr,
         contacts=(contacts > config.contact_threshold).astype(q_hat.dtype) * mask[:, None], anchor_kp=prior,
     )
