@@ -13,8 +13,10 @@
    and validates on data/val_ext (48 kinematic clips of seed 78); ``configs/tpnet_mixed.json``
    continues that run on data/train_ext and data/train_classic (600 kinematic clips of the
    classic generator, seed 9), validated on data/val_ext and data/val; ``configs/tpnet_mixed2.json``
-   continues it on those two and data/contacts_train: the weights shipped since 2026-12-04
-   (docs/method.md, "Staged training").
+   continues it on those two and data/contacts_train (shipped from stop 37 to 41);
+   ``configs/tpnet_mixed3.json`` continues the shipped weights on data/train_classic and
+   data/train_ext2 (1500 kinematic clips of the extended generator, seed 10): the weights
+   shipped since stop 42 (docs/method.md, "Staged training").
 2. Runs the staged training of the config (resumable: re-running continues from
    runs/default/checkpoint.msgpack; progress in runs/default/log.jsonl). The shipped weights of
    2026-12-04 continued the first TPNet stage of a default.json run with
@@ -43,6 +45,8 @@ ARCHIVES = (
     # configs/tpnet_mixed.json: classic kinematic clips beside them, and the validation archive
     ("data/train_classic", 600, 9, ["--frames-per-clip", "60:150", "--workers", "2"]),
     ("data/val", 16, 77, ["--physics"]),
+    # configs/tpnet_mixed3.json: more extended clips, kinematic (683-850 frames/s to make)
+    ("data/train_ext2", 1500, 10, ["--extended", "--frames-per-clip", "60:150", "--workers", "2"]),
 )
 
 
