@@ -877,10 +877,11 @@ def problem(model: Model, inputs: ClipInputs, q_hat: Array, contacts: Array, con
     prior = jax.vmap(lambda x: P.keypoints(model, x, config.layout))(q_hat)
     prior_rr = prior - jnp.mean(prior[:, np.asarray(layout.root_indices)], 1, keepdims=True)
     _, base = from_q(model, q_hat)
+    unit = jnp.maximum(person_height_px(kp, mask) / 100.0, config.noise_unit * keypoint_jitter_px(kp, mask))
     return Problem(
         keypoints=kp, intrinsics=jnp.asarray(inputs.intrinsics, q_hat.dtype),
         extrinsics=jnp.asarray(inputs.extrinsics, q_hat.dtype),
-        unit_px=jnp.maximum(person_height_px(kp, mask) / 100.0, config.noise_unit * keypoint_jitter_px(kp, mask)), fps=jnp.asarray(inputs.fps, q_hat.dtype), mask=mask,
+        unit_px=unit, fps=jnp.asarray(inputs.fps, q_hat.dtype), mask=mask,
         length=jnp.sum(mask.astype(jnp.int32)), base_quat=base, prior_rr=prior_rr,
         contacts=(contacts > config.contact_threshold).astype(q_hat.dtype) * mask[:, None], anchor_kp=prior,
     )
