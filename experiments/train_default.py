@@ -14,9 +14,11 @@
    continues that run on data/train_ext and data/train_classic (600 kinematic clips of the
    classic generator, seed 9), validated on data/val_ext and data/val; ``configs/tpnet_mixed2.json``
    continues it on those two and data/contacts_train (shipped from stop 37 to 41);
-   ``configs/tpnet_mixed3.json`` continues the shipped weights on data/train_classic and
-   data/train_ext2 (1500 kinematic clips of the extended generator, seed 10): the weights
-   shipped since stop 42 (docs/method.md, "Staged training").
+   ``configs/tpnet_mixed3.json`` continues those weights on data/train_classic and
+   data/train_ext2 (1500 kinematic clips of the extended generator, seed 10), and
+   ``configs/tpnet_mixed4.json`` continues that run (its runs/mixed3/params.msgpack) on those
+   two and data/train_ext3 (1500 more, seed 11): the weights shipped since stop 42
+   (docs/method.md, "Staged training").
 2. Runs the staged training of the config (resumable: re-running continues from
    runs/default/checkpoint.msgpack; progress in runs/default/log.jsonl). The shipped weights of
    2026-12-04 continued the first TPNet stage of a default.json run with
@@ -47,6 +49,8 @@ ARCHIVES = (
     ("data/val", 16, 77, ["--physics"]),
     # configs/tpnet_mixed3.json: more extended clips, kinematic (683-850 frames/s to make)
     ("data/train_ext2", 1500, 10, ["--extended", "--frames-per-clip", "60:150", "--workers", "2"]),
+    # configs/tpnet_mixed4.json: 1500 more
+    ("data/train_ext3", 1500, 11, ["--extended", "--frames-per-clip", "60:150", "--workers", "2"]),
 )
 
 
