@@ -3,6 +3,7 @@
     .venv/bin/python experiments/ablate_trajopt.py --clips 0 1 4 6 17 28 35 --set w_pose=1
     .venv/bin/python experiments/ablate_trajopt.py --gt-contacts          # oracle contact labels
     .venv/bin/python experiments/ablate_trajopt.py --gt-flight            # oracle flight frames only
+    .venv/bin/python experiments/ablate_trajopt.py --clean-2d             # oracle noise-free keypoints
 
 Every clip is padded to one length (``--length``), so the fit compiles once; the config's
 weights are traced (changing them with ``--set`` does not recompile; the static fields do).
