@@ -27,7 +27,7 @@ import numpy as np
 
 from jmocap import metrics as M
 from jmocap import physics as P
-from jmocap.camera import world_to_camera
+from jmocap.camera import project, world_to_camera
 from jmocap.data.clip import load_clip
 from jmocap.inputs import ClipInputs
 from jmocap.methods import stages as S
@@ -45,6 +45,13 @@ def scores(kp, gt, clip, roots):
     return dict(reproj=float(M.reprojection_error(kp, gt, cam)[0]), mpjpe=float(M.mpjpe(kp, gt, root=roots)),
                 pa=float(M.mpjpe(kp, gt, align="procrustes", root=roots)),
                 root=float(M.root_translation_error(kp, gt, root=roots)), depth=1e3 * float(np.mean(np.abs(depth))))
+
+
+def clean_2d(clip):
+    """The clip with the ground truth's exact projections as its keypoints (confidence 1)."""
+    uv = np.asarray(project(clip.camera, clip.gt_keypoints3d))
+    kp = np.concatenate([uv, np.ones_like(uv[..., :1])], -1).astype(clip.keypoints.dtype)
+    return dataclasses.replace(clip, keypoints=kp)
 
 
 def main():
@@ -94,10 +101,7 @@ def main():
         T = clip.num_frames
         model = subject_model(clip)
         if args.clean_2d:
-            from jmocap.camera import project
-
-            uv = np.asarray(project(clip.camera, clip.gt_keypoints3d))
-            clip = dataclasses.replace(clip, keypoints=np.concatenate([uv, np.ones_like(uv[..., :1])], -1).astype(clip.keypoints.dtype))
+            clip = clean_2d(clip)
         inputs = ClipInputs.from_clip(clip, args.length)
         gtc = np.zeros((args.length, 4), np.float32)
         gtc[:T] = clip.gt_contacts

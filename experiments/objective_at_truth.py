@@ -11,7 +11,6 @@ energies prefer something other than the truth (priors, weights, noise model).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 from pathlib import Path
 
@@ -19,7 +18,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jmocap.camera import project
 from jmocap.data.clip import load_clip
 from jmocap.inputs import ClipInputs
 from jmocap.methods import stages as S
@@ -39,6 +37,7 @@ def main():
     jax.config.update("jax_compilation_cache_dir", os.path.expanduser("~/.cache/jmocap/xla-dev"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
     from ablate_pip import parse_set
+    from ablate_trajopt import clean_2d
 
     params, config = default_params("trajopt")
     config = config.replace(**parse_set(args.set, config))
@@ -65,8 +64,7 @@ def main():
     for i in range(a, b + 1):
         clip = load_clip(Path(args.archive) / f"synth_{i:06d}.npz")
         if args.clean_2d:
-            uv = np.asarray(project(clip.camera, clip.gt_keypoints3d))
-            clip = dataclasses.replace(clip, keypoints=np.concatenate([uv, np.ones_like(uv[..., :1])], -1).astype(clip.keypoints.dtype))
+            clip = clean_2d(clip)
         T = clip.num_frames
         model = subject_model(clip)
         inputs = ClipInputs.from_clip(clip, args.length)

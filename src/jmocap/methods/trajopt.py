@@ -82,6 +82,8 @@ from jmocap.physics.rotations import quat_error, quat_exp, quat_mul, quat_normal
 
 Array = jnp.ndarray
 
+CONFIDENT = 0.1  # a keypoint with more confidence than this counts as seen (scales, jitter, frames to fit)
+
 
 @struct.dataclass
 class TrajOptConfig(KinematicConfig):
@@ -235,7 +237,7 @@ def _vertical_extent(keypoints: Array, mask: Array) -> Array:
     """(T,) the vertical extent of each frame's confident keypoints (pixels); NaN where the
     frame is not real or has fewer than two."""
     kp = jnp.asarray(keypoints)
-    ok = kp[..., 2] > 0.1
+    ok = kp[..., 2] > CONFIDENT
     v = kp[..., 1]
     ext = jnp.max(jnp.where(ok, v, -jnp.inf), -1) - jnp.min(jnp.where(ok, v, jnp.inf), -1)
     return jnp.where(mask & (jnp.sum(ok, -1) >= 2), ext, jnp.nan)
@@ -254,7 +256,7 @@ def keypoint_jitter_px(keypoints: Array, mask: Array) -> Array:
     real frames (``|k_{t+1} - 2 k_t + k_{t-1}|``, per coordinate; a body's own motion adds
     little to it at video rates) what it is: ``median / (0.6745 sqrt(6))``. 0 without any."""
     kp = jnp.asarray(keypoints)
-    ok = (kp[..., 2] > 0.1) & mask[:, None]
+    ok = (kp[..., 2] > CONFIDENT) & mask[:, None]
     ok3 = ok[2:] & ok[1:-1] & ok[:-2]
     d2 = jnp.abs(kp[2:, :, :2] - 2 * kp[1:-1, :, :2] + kp[:-2, :, :2])
     med = jnp.nanmedian(jnp.where(ok3[..., None], d2, jnp.nan))
@@ -839,7 +841,7 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
     # frames without enough evidence: from their neighbours
     T = q.shape[0]
     t = jnp.arange(T)
-    good = prob.mask & (jnp.sum(conf > 0.1, -1) >= config.min_keypoints)
+    good = prob.mask & (jnp.sum(conf > CONFIDENT, -1) >= config.min_keypoints)
     prev = jax.lax.cummax(jnp.where(good, t, -1), axis=0)
     nxt = jax.lax.cummin(jnp.where(good, t, T), axis=0, reverse=True)
     has_prev, has_next = prev >= 0, nxt < T
