@@ -203,6 +203,32 @@ def test_root_relative_missing_root():
     np.testing.assert_array_equal(out[0, 1], [0.0, 0.0, 0.0])
 
 
+@pytest.mark.parametrize("layout_name,root,hips", [("body25", "MidHip", ("RHip", "LHip")),
+                                                    ("h36m17", "Hip", ("RHip", "LHip"))])
+def test_root_relative_falls_back_to_the_hips(layout_name, root, hips):
+    """A frame whose root joint is missing but both hips are seen takes the hips' midpoint as
+    its root (the character's mid-hip site is their 3D midpoint exactly); with a hip missing too,
+    the frame is missing as before. Hand-worked values."""
+    layout = get_layout(layout_name)
+    r, (rh, lh) = layout.index(root), (layout.index(h) for h in hips)
+    other = next(i for i in range(layout.num_joints) if i not in (r, rh, lh))
+    kp = np.zeros((3, layout.num_joints, 3), np.float32)
+    kp[:, rh] = [400.0, 500.0, 0.8]
+    kp[:, lh] = [600.0, 520.0, 0.9]
+    kp[:, r] = [500.0, 510.0, 1.0]  # the hips' midpoint
+    kp[:, other] = [550.0, 110.0, 0.7]
+    kp[1, r, 2] = 0.0  # frame 1: root missing, hips seen
+    kp[2, r, 2] = 0.0  # frame 2: root and the left hip missing
+    kp[2, lh, 2] = 0.0
+    out = np.asarray(root_relative(kp, (1000.0, 1000.0), layout))
+    np.testing.assert_allclose(out[0, other], [0.05, -0.4, 0.7], atol=1e-6)
+    np.testing.assert_allclose(out[1, other], out[0, other], atol=1e-6)
+    np.testing.assert_allclose(out[1, rh], [-0.1, -0.01, 0.8], atol=1e-6)
+    np.testing.assert_array_equal(out[1, r], [0.0, 0.0, 0.0])  # the root joint itself stays missing
+    np.testing.assert_array_equal(out[2], 0.0)
+    assert get_layout("coco17").root_fallback == ()  # COCO's root is the hips already
+
+
 def test_jit_and_vmap_over_cameras():
     rng = np.random.default_rng(5)
     B = 4

@@ -444,3 +444,46 @@ def test_reconstructor_tiles_give_the_results_of_one_vmap(name):
             # second differences of the poses) amplify to ~1e-4 and ~1e-3 of their range; a
             # clip's results in another's row would differ by O(1)
             np.testing.assert_allclose(tiled[k], v, rtol=1e-3, atol=1e-3 * (float(np.abs(v).max()) + 1e-3), err_msg=k)
+
+
+def test_a_tracking_failure_restarts_from_the_reference():
+    """A frame that ends with the root more than ``reset_m`` from the reference's restarts at
+    rest at the reference pose, and the clip's result counts it; the demo walk's ground truth,
+    tracked as given, never fails. A reference that jumps 3 m sideways at frame 20 (as a flipped
+    or lost estimate does) fails there; with the check off the body never catches up."""
+    clip = load_clip(DEMO / "demo_walk.npz").slice(0, 45)
+    model = subject_model(clip)
+    _, config = load_run_params(None, method="pip")
+    q = jnp.asarray(clip.gt_q, jnp.float32)
+    prob = jnp.asarray(clip.gt_contacts, jnp.float32)
+    mask = jnp.ones(q.shape[0], bool)
+
+    @jax.jit
+    def run(q, config):
+        ref = pip.reference(model, q, prob, clip.fps, config.velocity_smoothing_s)
+        _, out = pip.simulate(model, ref, mask, clip.fps, config)
+        return ref, out, pip.to_motion(out, ref, mask).diagnostics["resets"]
+
+    _, out, resets = run(q, config)
+    assert not np.any(out.reset) and float(resets) == 0.0
+    assert float(jnp.max(jnp.linalg.norm(out.q[:, :3] - q[:, :3], axis=1))) < 0.2
+
+    jumped = q.at[20:, 1].add(3.0)
+    ref, out, resets = run(jumped, config)
+    failed = np.flatnonzero(np.asarray(out.reset))
+    assert failed[0] == 20 and float(resets) == failed.size
+    # the restarted state: the reference pose at rest, no sole point below the floor
+    np.testing.assert_allclose(np.asarray(out.q[20, :2]), np.asarray(jumped[20, :2]), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(out.q[20, 7:]), np.asarray(jumped[20, 7:]), atol=1e-6)
+    assert float(jnp.max(jnp.abs(out.qd[20]))) == 0.0
+    _, _, h = pip.sole_points(model, P.forward_kinematics(model, out.q[20]))
+    assert float(jnp.min(h)) >= -1e-6
+    # after it the body stays with the moved reference (the reference's filtered root velocity
+    # still carries the jump's 90 m/s finite difference for a few tenths of a second: measured
+    # 0.71 m at most); with the check off it is 3 m away and needs 20 frames to come within 1 m
+    err = np.linalg.norm(np.asarray(out.q[20:, :3] - jumped[20:, :3]), axis=1)
+    _, off, resets = run(jumped, config.replace(reset_m=0.0))
+    assert not np.any(off.reset) and float(resets) == 0.0
+    err_off = np.linalg.norm(np.asarray(off.q[20:, :3] - jumped[20:, :3]), axis=1)
+    assert err.max() < config.reset_m and err_off[0] > 2.5
+    assert err.mean() < 0.5 * err_off.mean(), (err.mean(), err_off.mean())

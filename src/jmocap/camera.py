@@ -263,8 +263,11 @@ def root_relative(keypoints_px: Array, image_size: Array, layout: str | Layout) 
 
     * the root is the mean of the root joints that are *visible* (confidence > 0); for COCO, a
       frame with one hip missing uses the other hip alone;
-    * a frame where no root joint is visible has no root: every joint of that frame gets
-      coordinates 0 and confidence 0 (the whole frame is treated as missing);
+    * a frame where no root joint is visible uses the mean of ``layout.root_fallback`` (the two
+      hips for BODY_25's MidHip and Human3.6M's Hip) when all of those are visible; the root
+      joint itself stays missing;
+    * a frame with neither has no root: every joint of that frame gets coordinates 0 and
+      confidence 0 (the whole frame is treated as missing);
     * a missing joint gets coordinates 0 (its confidence stays 0).
 
     Args:
@@ -293,6 +296,12 @@ def root_relative(keypoints_px: Array, image_size: Array, layout: str | Layout) 
     n = jnp.sum(w, axis=-2, keepdims=True)  # (..., 1, 1)
     root = safe_div(jnp.sum(p[..., idx, :] * w, axis=-2, keepdims=True), n)
     has_root = n > 0
+    if layout.root_fallback:  # no root joint seen: the mean of the fallback joints, all of them seen
+        fb = np.asarray(layout.root_fallback_indices)
+        fb_seen = jnp.all(conf[..., fb, :] > 0, axis=-2, keepdims=True)
+        use = ~has_root & fb_seen
+        root = jnp.where(use, jnp.mean(p[..., fb, :], axis=-2, keepdims=True), root)
+        has_root = has_root | use
     visible = (conf > 0) & has_root
     xy = jnp.where(visible, p - root, 0.0)
     conf = jnp.where(has_root, conf, 0.0)

@@ -30,6 +30,10 @@ class Layout:
     root: tuple[str, ...]
     # pairs of (left index, right index), for left/right swap augmentation and flipping
     flip_pairs: tuple[tuple[int, int], ...]
+    # joints whose mean stands in for the root in a frame where no root joint is seen but all of
+    # these are: the two hips, whose 3D midpoint is the character's mid-hip site exactly (so
+    # their 2D midpoint is the root's projection up to perspective); () for none
+    root_fallback: tuple[str, ...] = ()
 
     @property
     def num_joints(self) -> int:
@@ -41,6 +45,10 @@ class Layout:
     @property
     def root_indices(self) -> tuple[int, ...]:
         return tuple(self.joints.index(j) for j in self.root)
+
+    @property
+    def root_fallback_indices(self) -> tuple[int, ...]:
+        return tuple(self.joints.index(j) for j in self.root_fallback)
 
 
 def _pairs(joints: tuple[str, ...]) -> tuple[tuple[int, int], ...]:
@@ -54,9 +62,10 @@ def _pairs(joints: tuple[str, ...]) -> tuple[tuple[int, int], ...]:
     return tuple(pairs)
 
 
-def _layout(name: str, spec: tuple[tuple[str, str], ...], root: tuple[str, ...]) -> Layout:
+def _layout(name: str, spec: tuple[tuple[str, str], ...], root: tuple[str, ...],
+            root_fallback: tuple[str, ...] = ()) -> Layout:
     joints = tuple(j for j, _ in spec)
-    return Layout(name, joints, tuple(s for _, s in spec), root, _pairs(joints))
+    return Layout(name, joints, tuple(s for _, s in spec), root, _pairs(joints), root_fallback)
 
 
 BODY25 = _layout(
@@ -89,6 +98,7 @@ BODY25 = _layout(
         ("RHeel", "kp_right_heel"),
     ),
     root=("MidHip",),
+    root_fallback=("RHip", "LHip"),
 )
 
 COCO17 = _layout(
@@ -138,6 +148,7 @@ H36M17 = _layout(
         ("RWrist", "kp_right_wrist"),
     ),
     root=("Hip",),
+    root_fallback=("RHip", "LHip"),
 )
 
 LAYOUTS: dict[str, Layout] = {layout.name: layout for layout in (BODY25, COCO17, H36M17)}

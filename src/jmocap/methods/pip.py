@@ -146,6 +146,15 @@ class PIPConfig(KinematicConfig):
     # 2 steps (the same results on data/val). 4 trades skate for pose: on data/val 6 -> 4:
     # MPJPE 81.4 -> 79.5 mm, residual 6.97 -> 6.57 % BW, skate 8.0 -> 10.0 % (2: 76.9 mm, 12.7 %)
     w_slip: float = 4.0
+    # --- failure recovery ---
+    # a frame that ends with the simulated root more than this far (m) from the reference's is a
+    # tracking failure: the state restarts at rest at the reference pose (lifted out of the
+    # floor), and the clip's result counts it (Motion.diagnostics["resets"]). Without it one
+    # failure ruins the rest of a clip: a reference whose root orientation flips by 180 deg between
+    # frames once demanded thousands of N m of residual torque, the body spun and took off, and the
+    # net-force pyramid then let the residual hold it 10 m up while the horizontal anchor pulled it
+    # back (docs/method.md). 0 turns the check off
+    reset_m: float = 1.0
 
     def weights(self) -> TrackingWeights:
         return TrackingWeights(self.w_rotation, self.w_position, self.w_residual, self.w_torque,
@@ -256,12 +265,24 @@ class FrameOutput:
     tau: Array  # mean over the frame's steps
     grf: Array  # mean over the frame's steps
     certified: Array  # () bool: every QP of the frame was certified
+    reset: Array  # () bool: the frame ended in a tracking failure and the state restarted (reset_m)
+
+
+def restart_state(model: Model, r: Reference) -> CycleState:
+    """The state a tracking failure restarts from: the reference pose, lifted so that no sole
+    point is below the floor, at rest (the reference's velocity is the least trustworthy part
+    of it where tracking failed: a jump of the reference is a huge finite difference)."""
+    _, _, height = sole_points(model, P.forward_kinematics(model, r.q))
+    q = r.q.at[2].add(jnp.maximum(-jnp.min(height), 0.0))
+    return rest_state(q, model.nv)
 
 
 def simulate(model: Model, ref: Reference, mask: Array, fps, config: PIPConfig = PIPConfig(), *,
              init: CycleState | None = None) -> tuple[CycleState, FrameOutput]:
     """The tracking dynamics over frames (``lax.scan``), ``iterations`` steps per frame; padding
-    frames (mask False) leave the state unchanged."""
+    frames (mask False) leave the state unchanged. A real frame that ends with the root more than
+    ``config.reset_m`` from the reference's restarts from the reference (:func:`restart_state`)
+    and is flagged in :attr:`FrameOutput.reset`."""
     dtype = ref.q.dtype
     k = config.iterations
     dt = (1.0 / jnp.asarray(fps, dtype)) / k
@@ -275,15 +296,23 @@ def simulate(model: Model, ref: Reference, mask: Array, fps, config: PIPConfig =
             return step(model, s, r, dt, config)
 
         new, steps = jax.lax.scan(iteration, state, None, length=k)
+        away = jnp.linalg.norm(new.q[:3] - r.q[:3])
+        failed = real & (config.reset_m > 0) & ~(away <= config.reset_m)  # NaN is a failure too
+        new = jax.tree.map(lambda a, b: jnp.where(failed, a, b), restart_state(model, r), new)
         new = jax.tree.map(lambda a, b: jnp.where(real, a, b), new, state)
-        out = FrameOutput(new.q, new.qd, steps.tau.mean(0), steps.grf.mean(0), jnp.all(steps.certified) | ~real)
+        out = FrameOutput(new.q, new.qd, steps.tau.mean(0), steps.grf.mean(0), jnp.all(steps.certified) | ~real,
+                          failed)
         return new, out
 
     return jax.lax.scan(frame, init, (ref, mask))
 
 
-def _motion(out: FrameOutput, ref: Reference, mask) -> Motion:
-    return Motion(out.q, out.qd, out.tau, out.grf, ref.prob, ref.q, mask, certified=out.certified)
+def to_motion(out: FrameOutput, ref: Reference, mask, resets=None) -> Motion:
+    """The result; ``diagnostics["resets"]``: the tracking failures so far (``resets``, a chunk's
+    running count over its clip, else this run's)."""
+    resets = jnp.sum(out.reset & mask).astype(out.q.dtype) if resets is None else resets
+    return Motion(out.q, out.qd, out.tau, out.grf, ref.prob, ref.q, mask, certified=out.certified,
+                  diagnostics={"resets": resets})
 
 
 #: frames before a frame over which the per-frame fit's image scale is taken (a causal median)
@@ -379,7 +408,7 @@ def reconstruct(params: dict, model: Model, inputs: ClipInputs, config: PIPConfi
     ref = clip_reference(params, model, inputs, config)
     mask = jnp.asarray(inputs.mask)
     _, out = simulate(model, ref, mask, inputs.fps, config)
-    return _motion(out, ref, mask)
+    return to_motion(out, ref, mask)
 
 
 def history(config) -> int:
@@ -405,15 +434,17 @@ def lookahead(config) -> int:
 
 @struct.dataclass
 class Carry:
-    """What a chunk hands to the next: the dynamic state and the root-velocity filter's state."""
+    """What a chunk hands to the next: the dynamic state, the root-velocity filter's state and
+    the clip's tracking failures so far."""
 
     state: CycleState
     root_vel: Array  # (3,)
+    resets: Array  # ()
 
 
 def init_carry(model: Model, config=None, dtype=jnp.float32) -> Carry:
     """A zero :class:`Carry` (the shapes of the state carried between chunks)."""
-    return Carry(physcap_init_carry(model, config, dtype), jnp.zeros(3, dtype))
+    return Carry(physcap_init_carry(model, config, dtype), jnp.zeros(3, dtype), jnp.zeros((), dtype))
 
 
 def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry: Carry, first, config: PIPConfig,
@@ -437,7 +468,8 @@ def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry: Carry, fi
     init = jax.tree.map(lambda a, b: jnp.where(first, a, b), start, carry.state)
     state, out = simulate(model, ref, mask, inputs.fps, config, init=init)
     last = jnp.max(jnp.where(mask, jnp.arange(mask.shape[0]), 0))  # the chunk's last real frame
-    return Carry(state, ref.root_vel[last]), _motion(out, ref, mask)
+    resets = jnp.where(first, 0.0, carry.resets) + jnp.sum(out.reset & mask)
+    return Carry(state, ref.root_vel[last], resets), to_motion(out, ref, mask, resets)
 
 
 METHOD = register(
@@ -483,6 +515,8 @@ __all__ = [
     "smooth_poses",
     "step",
     "step_qp",
+    "restart_state",
+    "to_motion",
     "on_floor",
     "tracked_bodies",
 ]

@@ -154,7 +154,7 @@ def reconstruct(params, model: Model, inputs: IMUInputs, config: PIPIMUConfig = 
     q_ref = PIP.smooth_poses(k.q, mask, config.pip.smoothing_radius, config.pip.smoothing_sigma)
     ref = PIP.reference(model, q_ref, k.prob, inputs.fps, config.pip.velocity_smoothing_s)
     _, out = PIP.simulate(model, ref, mask, inputs.fps, config.pip)
-    return Motion(out.q, out.qd, out.tau, out.grf, ref.prob, ref.q, mask, certified=out.certified)
+    return PIP.to_motion(out, ref, mask)
 
 
 def load_params(path=ASSET, config_path=None) -> tuple[dict, N.IMUNetConfig]:
