@@ -158,6 +158,18 @@ def test_clip_without_ground_truth_is_recorded_and_skipped(clips):
     assert res.summary["ground_truth"]["mpjpe_mm"] == pytest.approx(0.0, abs=1e-2)
 
 
+def test_a_methods_per_clip_report_is_kept_beside_the_metrics_and_not_summarised(clips):
+    """``Motion.diagnostics`` (e.g. ``pip``'s tracking failures) reach ``per_clip`` as
+    ``diag_<name>``; the summary averages metrics only."""
+    c = clips[1]
+    batch = E._prepare([c], c.num_frames, 1)
+    pred = {**E._ground_truth_pred(batch.gt[0]), "diagnostics": {"resets": np.float32(2.0)}}
+    r = E._evaluate_clip(c, pred, batch.gt[0], c.num_frames, E.subject_model(c).total_mass)
+    assert r["diag_resets"] == 2.0 and r["mpjpe_mm"] == pytest.approx(0.0, abs=1e-2)
+    summary, _ = E.aggregate({"m": {c.name: r}})
+    assert "diag_resets" not in summary["m"] and "mpjpe_mm" in summary["m"]
+
+
 def test_evaluate_motion_of_the_ground_truth(clips):
     c = clips[1]
     r = M.evaluate_motion(c, q=c.gt_q, grf=c.gt_grf, tau=c.gt_tau, contact_prob=c.gt_contacts,

@@ -200,11 +200,16 @@ def _prepare(clips: list[Clip], length: int, size: int, subject_height: str = "g
 
 
 def _evaluate_clip(clip: Clip, pred: dict, gt: dict, length: int, pred_mass: float) -> dict[str, float]:
+    """The clip's metrics, plus the method's own per-clip report (``Motion.diagnostics``, e.g.
+    ``pip``'s tracking failures) as ``diag_<name>`` entries (per clip only: not summarised)."""
     mask = np.arange(length) < clip.num_frames
-    return M.evaluate_arrays(
+    pred = dict(pred)
+    diagnostics = pred.pop("diagnostics", None) or {}
+    out = M.evaluate_arrays(
         pred, gt, fps=clip.fps, mask=mask, camera=M.clip_camera(clip), root=clip.layout_spec.root_indices,
         pred_mass=pred_mass, gt_mass=clip.mass_kg or subject_model(clip).total_mass,
     )
+    return {**out, **{f"diag_{k}": float(v) for k, v in diagnostics.items()}}
 
 
 def _ground_truth_pred(gt_i: dict) -> dict:
@@ -324,6 +329,8 @@ def _predict(params, batch: _Batch, method: str, cfg) -> list[tuple[dict, float,
     for i, clip in enumerate(batch.clips):
         pred = {k: v[i] for k, v in qty.items()}
         pred["contact_prob"] = motion.contact_prob[i]
+        if motion.diagnostics is not None:
+            pred["diagnostics"] = {k: v[i] for k, v in motion.diagnostics.items()}
         if methods_.get_method(method).estimates_forces:  # the kinematic method estimates none
             pred["grf"] = motion.grf[i]
             pred["tau"] = motion.tau[i]
