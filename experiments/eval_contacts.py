@@ -7,7 +7,9 @@ Waits until ``data/heldout/manifest.jsonl`` lists its 40 clips (made by
 --seed 123 --physics``; this script never writes it), then scores on every real frame of every
 clip, pooled (``jmocap.metrics.contact_classification``, ``> 0.5`` is "in contact"):
 
-(a) ``mlp_voted``: the contact MLP with majority voting (``estimate_contacts``);
+(a) ``mlp_voted``: the contact MLP with majority voting (``estimate_contacts``: each window's
+    probabilities averaged with its mirror image's);
+(a') ``mlp_voted_plain``: the same without the mirror image (``mirror=False``);
 (b) ``mlp_centre``: the MLP's own prediction for its target frame (the window's centre), no voting;
 (c) ``tpnet``: TPNet's contact head (the ``kinematic`` method with the shipped default weights,
     ``Motion.contact_prob``);
@@ -41,6 +43,7 @@ TITLE = "## Contact estimation (Rempe et al. 2020, Sec. 3.2)"
 POINTS = ("L heel", "L toe", "R heel", "R toe")
 METHODS = {
     "mlp_voted": "(a) contact MLP, voted",
+    "mlp_voted_plain": "(a') contact MLP, voted, no mirror image",
     "mlp_centre": "(b) contact MLP, centre frame",
     "tpnet": "(c) TPNet contact head (`kinematic`)",
     "majority": "(d) majority class (training split)",
@@ -81,16 +84,17 @@ def predict_all(clips, params, meta, batch: int = 8) -> dict[str, list[np.ndarra
     from jmocap.pipeline import subject_model
     from jmocap.weights import default_params
 
-    voted = jax.jit(ce.estimate_contacts, static_argnums=2)
-    windows = jax.jit(ce.window_probabilities, static_argnums=2)
+    voted = jax.jit(ce.estimate_contacts, static_argnums=(2, 3))
+    windows = jax.jit(ce.window_probabilities, static_argnums=(2, 3))
     velocity = jax.jit(ce.velocity_contacts, static_argnums=4)
     out: dict[str, list[np.ndarray]] = {k: [] for k in METHODS}
     majority = np.asarray(meta["train_majority"], np.float32)
     for c in clips:
         T = c.num_frames
         inp = ClipInputs.from_clip(c, _bucket(T))
-        out["mlp_voted"].append(np.asarray(voted(params, inp, c.layout))[:T])
-        out["mlp_centre"].append(np.asarray(windows(params, inp, c.layout))[:T, ce.HALF_OUT])
+        out["mlp_voted"].append(np.asarray(voted(params, inp, c.layout, True))[:T])
+        out["mlp_voted_plain"].append(np.asarray(voted(params, inp, c.layout, False))[:T])
+        out["mlp_centre"].append(np.asarray(windows(params, inp, c.layout, True))[:T, ce.HALF_OUT])
         out["majority"].append(np.broadcast_to(majority, (T, 4)).copy())
         out["velocity_2d"].append(np.asarray(velocity(inp.keypoints, inp.image_size, inp.mask,
                                                       float(meta["velocity_threshold"]), c.layout))[:T])

@@ -330,17 +330,19 @@ def fit_velocity_threshold(clips) -> float:
     return float(grid[int(np.argmax(f1))])
 
 
-def voted_f1(variables, clips) -> dict:
+def voted_f1(variables, clips, mirror: bool = True) -> dict:
+    """Validation scores of the voted estimate (``estimate_contacts``, with or without the
+    mirror image), ``> 0.5`` = in contact."""
     import jax
 
     from jmocap.inputs import ClipInputs
     from jmocap.methods import contact_estimation as ce
 
-    fn = jax.jit(ce.estimate_contacts, static_argnums=2)
+    fn = jax.jit(ce.estimate_contacts, static_argnums=(2, 3))
     preds, gts = [], []
     for c in clips:
         inp = ClipInputs.from_clip(c, _bucket(c.num_frames))
-        preds.append(np.asarray(fn(variables, inp, c.layout))[: c.num_frames] > 0.5)
+        preds.append(np.asarray(fn(variables, inp, c.layout, mirror))[: c.num_frames] > 0.5)
         gts.append(np.asarray(c.gt_contacts) > 0.5)
     from jmocap import metrics as M
 
@@ -439,6 +441,7 @@ def main(argv=None) -> int:
         "train_majority": [int(r > 0.5) for r in rate],
         "velocity_threshold": fit_velocity_threshold(tr),
         "val_voted": voted_f1(best, va),
+        "val_voted_no_mirror": voted_f1(best, va, mirror=False),
         "val_voted_float16": voted_f1(half, va),
         # the validation clips as a COCO-17 detector would give them (no feet), converted back
         "val_voted_coco17": voted_f1(best, [c.to_layout("coco17").to_layout("body25") for c in va]),

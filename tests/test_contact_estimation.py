@@ -225,6 +225,29 @@ def test_jit_vmap_over_padded_clips_equals_per_clip(params, clips):
         assert np.all((own >= 0) & (own <= 1))
 
 
+def test_mirror_averaged_estimate_is_mirror_symmetric(params, clips):
+    """With ``mirror`` the window probabilities of a mirrored clip are those of the clip with left
+    and right swapped (the average over a clip and its mirror image is symmetric by
+    construction); the network alone is not, so the plain estimate is not."""
+    c = clips[0]
+    inp = ClipInputs.from_clip(c, 64)
+    flipped = inp.replace(keypoints=ce.flip_keypoints(inp.keypoints, inp.image_size))
+    probs = jax.jit(ce.window_probabilities, static_argnums=(2, 3))
+    for mirror in (True, False):
+        a = np.asarray(probs(params, inp, "body25", mirror))
+        b = np.asarray(ce.flip_contacts(probs(params, flipped, "body25", mirror)))
+        gap = np.max(np.abs(a - b)[: c.num_frames])
+        if mirror:
+            assert gap < 1e-5, gap
+        else:
+            assert gap > 1e-3, gap
+    # mirroring averages two estimates: between them, frame by frame
+    plain = np.asarray(probs(params, inp, "body25", False))
+    other = np.asarray(ce.flip_contacts(probs(params, flipped, "body25", False)))
+    avg = np.asarray(probs(params, inp, "body25", True))
+    np.testing.assert_allclose(avg, 0.5 * (plain + other), atol=1e-6)
+
+
 def _f1(pred, gt):
     tp = np.sum(pred & gt)
     return 2 * tp / (2 * tp + np.sum(pred & ~gt) + np.sum(~pred & gt))
