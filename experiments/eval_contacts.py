@@ -1,6 +1,7 @@
 """Foot-contact classification on the held-out archive: Rempe et al.'s MLP against baselines.
 
     .venv/bin/python experiments/eval_contacts.py [--params runs/contacts/contact_mlp.msgpack] [--no-docs]
+        [--archive ARCHIVE]  (another physics archive: printed only, never written to the docs)
 
 Waits until ``data/heldout/manifest.jsonl`` lists its 40 clips (made by
 ``experiments/evaluate_default.py`` / ``jmocap data synth --out data/heldout --clips 40
@@ -164,7 +165,7 @@ def noise_summary(clips) -> str:
             f"{swaps} left/right swap events")
 
 
-def section(res, clips, meta, command: str, wall_s: float, params_src: str) -> str:
+def section(res, clips, meta, command: str, wall_s: float, params_src: str, archive: Path = HELDOUT) -> str:
     frames = sum(c.num_frames for c in clips)
     gt = np.concatenate([c.gt_contacts for c in clips]) > 0.5
     rate = ", ".join(f"{p} {100 * r:.0f} %" for p, r in zip(POINTS, gt.mean(0), strict=True))
@@ -172,9 +173,10 @@ def section(res, clips, meta, command: str, wall_s: float, params_src: str) -> s
     bacc = res["mlp_voted"]["all"]["balanced_accuracy"]
     return "\n".join([
         BEGIN, TITLE, "",
-        f"Produced by `{command}` ({wall_s:.0f} s on 1 CPU core), on the held-out archive "
-        f"`data/heldout` (seed 123, {len(clips)} clips, {frames} frames, `--physics`: contact labels "
-        f"by force and floor, docs/data.md; contact rate {rate}). Held-out {noise_summary(clips)}. Metrics pooled over every "
+        f"Produced by `{command}` ({wall_s:.0f} s on 1 CPU core), on the "
+        + ("held-out archive " if archive.resolve() == HELDOUT.resolve() else "archive ")
+        + f"`{_rel(archive)}` (seed {_seed(archive)}, {len(clips)} clips, {frames} frames, `--physics`: contact labels "
+        f"by force and floor, docs/data.md; contact rate {rate}). Keypoints: {noise_summary(clips)}. Metrics pooled over every "
         f"real frame and the four contact points (`jmocap.metrics.contact_classification`, "
         f"`> 0.5` = in contact); the last column is the mean over clips of each clip's F1.",
         "",
@@ -185,7 +187,7 @@ def section(res, clips, meta, command: str, wall_s: float, params_src: str) -> s
                   for e in meta.get("extra_archives", []))
         + f"). Majority labels {meta['train_majority']} and the velocity "
         f"threshold {meta['velocity_threshold']:.4f} body sizes per frame come from its training "
-        f"split; nothing was tuned on this archive.",
+        "split" + ("; nothing was tuned on this archive." if archive.resolve() == HELDOUT.resolve() else "."),
         "",
         tables(res), "",
         "Targets (issue 15): contact F1 >= 90 % -- "
@@ -195,6 +197,18 @@ def section(res, clips, meta, command: str, wall_s: float, params_src: str) -> s
         + ". See docs/method.md, \"Contact estimation\".",
         END, "",
     ])
+
+
+def _rel(path: Path) -> str:
+    try:
+        return str(path.resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
+
+
+def _seed(archive: Path):
+    meta = archive / "archive.json"
+    return json.loads(meta.read_text()).get("seed", "?") if meta.exists() else "?"
 
 
 def write_docs(text: str) -> Path:
@@ -240,9 +254,9 @@ def main(argv=None) -> int:
         clips = [a.load(n) for n in a.names()]
     preds = predict_all(clips, params, meta)
     res = score(preds, [np.asarray(c.gt_contacts) for c in clips])
-    text = section(res, clips, meta, command, time.time() - t0, params_src)
+    text = section(res, clips, meta, command, time.time() - t0, params_src, archive)
     print(text)
-    if not args.no_docs:
+    if not args.no_docs and archive.resolve() == HELDOUT.resolve():  # the docs' section is the held-out one
         print(f"wrote {write_docs(text)}")
     return 0
 
