@@ -21,7 +21,8 @@ certified          bool       (T,)          optional, methods that solve a QP pe
                                             solve of the frame passed its KKT check
 diagnostics        str        ()            optional, JSON object of per-clip numbers a method
                                             reports about its solve (``trajopt``: objective
-                                            before/after, terms, iterations, residual)
+                                            before/after, terms, iterations, residual;
+                                            ``pip``: ``resets``, tracking failures)
 fps                float64    ()            frames per second
 height_m, mass_kg  float64    ()            the character's height and mass
 layout             str        ()            keypoint layout
