@@ -167,6 +167,7 @@ def noise_summary(clips) -> str:
 
 def section(res, clips, meta, command: str, wall_s: float, params_src: str, archive: Path = HELDOUT) -> str:
     frames = sum(c.num_frames for c in clips)
+    heldout = archive.resolve() == HELDOUT.resolve()
     gt = np.concatenate([c.gt_contacts for c in clips]) > 0.5
     rate = ", ".join(f"{p} {100 * r:.0f} %" for p, r in zip(POINTS, gt.mean(0), strict=True))
     best = res["mlp_voted"]["all"]["f1"]
@@ -174,7 +175,7 @@ def section(res, clips, meta, command: str, wall_s: float, params_src: str, arch
     return "\n".join([
         BEGIN, TITLE, "",
         f"Produced by `{command}` ({wall_s:.0f} s on 1 CPU core), on the "
-        + ("held-out archive " if archive.resolve() == HELDOUT.resolve() else "archive ")
+        + ("held-out archive " if heldout else "archive ")
         + f"`{_rel(archive)}` (seed {_seed(archive)}, {len(clips)} clips, {frames} frames, `--physics`: contact labels "
         f"by force and floor, docs/data.md; contact rate {rate}). Keypoints: {noise_summary(clips)}. Metrics pooled over every "
         f"real frame and the four contact points (`jmocap.metrics.contact_classification`, "
@@ -187,7 +188,7 @@ def section(res, clips, meta, command: str, wall_s: float, params_src: str, arch
                   for e in meta.get("extra_archives", []))
         + f"). Majority labels {meta['train_majority']} and the velocity "
         f"threshold {meta['velocity_threshold']:.4f} body sizes per frame come from its training "
-        "split" + ("; nothing was tuned on this archive." if archive.resolve() == HELDOUT.resolve() else "."),
+        "split" + ("; nothing was tuned on this archive." if heldout else "."),
         "",
         tables(res), "",
         "Targets (issue 15): contact F1 >= 90 % -- "
@@ -237,7 +238,8 @@ def main(argv=None) -> int:
         " " + shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     t0 = time.time()
     archive = Path(args.archive)
-    if archive.resolve() == HELDOUT.resolve():
+    heldout = archive.resolve() == HELDOUT.resolve()
+    if heldout:
         wait_for_heldout(archive, N_HELDOUT, args.wait_s)
 
     from jmocap.data.archive import Archive
@@ -256,7 +258,7 @@ def main(argv=None) -> int:
     res = score(preds, [np.asarray(c.gt_contacts) for c in clips])
     text = section(res, clips, meta, command, time.time() - t0, params_src, archive)
     print(text)
-    if not args.no_docs and archive.resolve() == HELDOUT.resolve():  # the docs' section is the held-out one
+    if not args.no_docs and heldout:  # the docs' section is the held-out one
         print(f"wrote {write_docs(text)}")
     return 0
 

@@ -272,9 +272,7 @@ def restart_state(model: Model, r: Reference) -> CycleState:
     """The state a tracking failure restarts from: the reference pose, lifted so that no sole
     point is below the floor, at rest (the reference's velocity is the least trustworthy part
     of it where tracking failed: a jump of the reference is a huge finite difference)."""
-    _, _, height = sole_points(model, P.forward_kinematics(model, r.q))
-    q = r.q.at[2].add(jnp.maximum(-jnp.min(height), 0.0))
-    return rest_state(q, model.nv)
+    return rest_state(r.q.at[2].max(on_floor(model, r.q)[2]), model.nv)
 
 
 def simulate(model: Model, ref: Reference, mask: Array, fps, config: PIPConfig = PIPConfig(), *,
@@ -298,7 +296,8 @@ def simulate(model: Model, ref: Reference, mask: Array, fps, config: PIPConfig =
         new, steps = jax.lax.scan(iteration, state, None, length=k)
         away = jnp.linalg.norm(new.q[:3] - r.q[:3])
         failed = real & (config.reset_m > 0) & ~(away <= config.reset_m)  # NaN is a failure too
-        new = jax.tree.map(lambda a, b: jnp.where(failed, a, b), restart_state(model, r), new)
+        # (a cond: one clip skips the restart's kinematics; under vmap it becomes a select)
+        new = jax.lax.cond(failed, lambda: restart_state(model, r), lambda: new)
         new = jax.tree.map(lambda a, b: jnp.where(real, a, b), new, state)
         out = FrameOutput(new.q, new.qd, steps.tau.mean(0), steps.grf.mean(0), jnp.all(steps.certified) | ~real,
                           failed)
