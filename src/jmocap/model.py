@@ -311,6 +311,14 @@ def nominal_height(mj: mujoco.MjModel) -> float:
 
 
 def _scaled_model(path: Path, height_m: float | None, mass_kg: float | None) -> mujoco.MjModel:
+    return scaled_spec(path, height_m, mass_kg).compile()
+
+
+def scaled_spec(path: Path | None, height_m: float | None, mass_kg: float | None) -> mujoco.MjSpec:
+    """The ``mujoco.MjSpec`` of the MJCF at ``path`` (default: jmocap's humanoid) scaled as
+    :func:`load_model` scales it (``None``: unscaled), for callers that edit it before compiling
+    (the synthetic generator's simulation model adds actuators)."""
+    path = Path(path) if path is not None else DEFAULT_MODEL_PATH
     spec = mujoco.MjSpec.from_file(str(path))
     base = spec.compile()
     s = 1.0
@@ -363,7 +371,7 @@ def _scaled_model(path: Path, height_m: float | None, mass_kg: float | None) -> 
             for a in free_qadr:
                 qpos[a : a + 3] *= s
             key.qpos = qpos
-    return spec.compile()
+    return spec
 
 
 def from_mjmodel(mj: mujoco.MjModel, *, with_mjx: bool = True) -> Model:

@@ -28,7 +28,7 @@ from jmocap.data.synthetic.ground_truth import (
 )
 from jmocap.data.synthetic.keypoints import Corruption, corrupt_keypoints
 from jmocap.data.synthetic.motion import check_motion
-from jmocap.data.synthetic.physics import PhysicsConfig, simulate_tracking
+from jmocap.data.synthetic.physics import PhysicsConfig, simulate
 from jmocap.data.synthetic.plan import MOTION_KINDS
 from jmocap.data.synthetic.repertoire import (
     CLASSIC_KINDS,
@@ -145,8 +145,8 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
             sim = {}
             if config.physics:
                 q_lead = _lead_in(planned, start, config.physics_cfg.settle_frames(config.fps))
-                sim = simulate_tracking(ch, np.concatenate([q_lead, q]), config.fps, config.physics_cfg,
-                                        lead=len(q_lead))
+                sim = simulate(ch, np.concatenate([q_lead, q]), config.fps, config.physics_cfg,
+                               lead=len(q_lead), rng=np.random.default_rng([int(seed), int(index), attempt, 1]))
                 q, qd = sim["q"], sim["qd"]
                 meta["physics"] = sim["stats"]
             else:

@@ -22,7 +22,7 @@ from __future__ import annotations
 import copy
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
@@ -33,6 +33,7 @@ from jmocap.data.synthetic.character import Character
 from jmocap.data.synthetic.curves import _wrap
 from jmocap.data.synthetic.errors import GenerationError
 from jmocap.data.synthetic.ground_truth import velocities
+from jmocap.data.synthetic.sampling import SamplingConfig
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,10 @@ class PhysicsConfig:
     fall_height: float = 0.5  # fraction of the standing pelvis height
     fall_tilt_deg: float = 60.0
     settle_s: float = 0.5  # lead-in simulated before the clip's first frame and dropped
+    # "qp": the QP tracker with the rescue residual (simulate_tracking); "sampling": sampling-based
+    # control, no root force ever (jmocap.data.synthetic.sampling.simulate_sampling)
+    controller: str = "qp"
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
 
     def settle_frames(self, fps: float) -> int:
         """Frames of lead-in (``settle_s`` at ``fps``) that :func:`simulate_tracking`'s caller
@@ -305,6 +310,32 @@ def _control(M, h, A, Jc, vc, a_des, sw, cfg: PhysicsConfig, mass: float, residu
     return tau
 
 
+def foot_geoms(ch: Character, mj: mujoco.MjModel):
+    """``(floor, geom_foot, geom_body)`` (ngeom,): the floor planes, each geom's foot (0 left,
+    1 right, -1 none) and body."""
+    floor = np.array([mj.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE for g in range(mj.ngeom)])
+    if not floor.any():
+        raise ValueError("the model has no floor plane")
+    geom_foot = np.full(mj.ngeom, -1)
+    for f, L in enumerate(ch.legs):
+        geom_foot[np.isin(mj.geom_bodyid, [L.ankle_body, L.toe_body])] = f
+    return floor, geom_foot, np.array(mj.geom_bodyid)
+
+
+def simulate(ch: Character, q_ref: np.ndarray, fps: float, cfg: PhysicsConfig = PhysicsConfig(),  # noqa: B008
+             lead: int = 0, rng: np.random.Generator | None = None) -> dict:
+    """The physics variant's simulation with ``cfg.controller``: :func:`simulate_tracking` ("qp")
+    or :func:`jmocap.data.synthetic.sampling.simulate_sampling` ("sampling", drawing from
+    ``rng``)."""
+    if cfg.controller == "qp":
+        return simulate_tracking(ch, q_ref, fps, cfg, lead)
+    if cfg.controller == "sampling":
+        from jmocap.data.synthetic.sampling import simulate_sampling
+
+        return simulate_sampling(ch, q_ref, fps, cfg, lead, rng)
+    raise ValueError(f"unknown physics controller {cfg.controller!r} (qp, sampling)")
+
+
 def _rescue(on: bool, pos_err: float, rot_err: float, cfg: PhysicsConfig) -> bool:
     """Hysteresis of the rescue residual: on when the root is more than ``rescue_pos_m`` or
     ``rescue_rot_deg`` off the reference, off again when below ``rescue_off`` times both."""
@@ -354,13 +385,7 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     mass = float(np.sum(mj.body_mass))
     weight = mass * GRAVITY
     E = pyramid_edges()
-    floor = np.array([mj.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE for g in range(mj.ngeom)])
-    if not floor.any():
-        raise ValueError("the model has no floor plane")
-    geom_foot = np.full(mj.ngeom, -1)
-    for f, L in enumerate(ch.legs):
-        geom_foot[np.isin(mj.geom_bodyid, [L.ankle_body, L.toe_body])] = f
-    geom_body = np.array(mj.geom_bodyid)
+    floor, geom_foot, geom_body = foot_geoms(ch, mj)
     sites = ch.contact_sites
     z_fall = cfg.fall_height * ch.z_stand
     cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg))
@@ -429,6 +454,22 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         up = d.xmat[ch.pelvis].reshape(3, 3)[2, 2]
         if not np.all(np.isfinite(d.qpos)) or d.qpos[2] < z_fall or up < cos_tilt:
             raise GenerationError(f"the simulated character fell at frame {k}")
+    return frames_from_substeps(ch, q_ref, q_out, qd_out, fps, n, lead, cfg, weight, dict(
+        tau=sub_tau, grf=sub_grf, foot=sub_foot, moment=sub_moment, mid=sub_mid, rescue=rescue_sub),
+        site_z, root_err, nonfoot)
+
+
+def frames_from_substeps(ch: Character, q_ref, q_out, qd_out, fps: float, n: int, lead: int, cfg: PhysicsConfig,
+                         weight: float, sub: dict, site_z, root_err, nonfoot: int) -> dict:
+    """The frame values and statistics of a simulation from its substep records (``sub``: ``tau``
+    (S, nv) applied generalised forces, ``grf`` (S, 4, 3), ``foot`` (S, 2, 3), ``moment`` (S, 2, 3),
+    ``mid`` (S, 2, 3), ``rescue`` (S,) bool), the frame states ``q_out`` / ``qd_out`` and the
+    per-frame ``site_z`` (T, 4) and ``root_err`` (T, 2); the first ``lead`` frames are dropped
+    (:func:`simulate_tracking`'s return value)."""
+    T = len(q_ref)
+    sub_tau, sub_grf, sub_foot, sub_moment = sub["tau"], sub["grf"], sub["foot"], sub["moment"]
+    sub_mid, rescue_sub = sub["mid"], sub["rescue"]
+    dt = 1.0 / fps / n
     threshold = cfg.contact_force_threshold * weight
     keep = slice(lead, T)
     tau = tent_average(sub_tau, n)[keep]

@@ -1,0 +1,354 @@
+"""Sampling-based tracking: ground truth moved by joint torques and contacts alone (no root force).
+
+The QP tracker of :mod:`jmocap.data.synthetic.physics` follows the kinematic plan frame by frame
+and needs a root residual (the "rescue") wherever the plan is not dynamically feasible: its
+centre of mass comes from a linear inverted pendulum, so in parts of single support its
+zero-moment point lies outside the supporting foot, and a fixed plan tracked with joint PD and
+contacts falls (docs/data.md). :func:`simulate_sampling` instead searches, window by window, for
+the joint targets that keep a simulated character *balanced* close to the plan, in the spirit
+of SAMCON (Liu et al. 2010, "Sampling-based contact-rich motion control") and of Neural MoCon's
+sampling control (Huang et al. 2022, Sec. 3.1):
+
+* the character is driven by PD servos on every hinge (MuJoCo position actuators, stiffness
+  ``I_i (2 pi f)^2`` and damping ``2 I_i (2 pi f)``, ``I_i`` the standing pose's joint-space
+  inertia diagonal) towards the plan's hinge angles plus a per-window offset, and by a
+  feed-forward hinge torque: the QP tracker's torques at the plan's own state, whose root rows
+  the plan's contacts balance. The root is never actuated;
+* per control window (``window`` frames) ``samples`` offsets are drawn (Gaussian, standard
+  deviation ``sigma`` rad, around ``carry`` times the previous window's offset), each is rolled
+  out by ``mujoco.rollout`` (MuJoCo C, multi-threaded) over the window and a ``lookahead`` of
+  further frames (the offset then decayed to ``lookahead_gain`` of itself), and scored against
+  the plan frame by frame: the root's horizontal position *relative to the feet* (balance
+  over the support, not the plan's world path: a walk may lag its plan), its height, its
+  orientation, the hinge angles, the root velocity and, weakly, the world position;
+* the best sample's window is committed by stepping MuJoCo C itself (the same model, state and
+  controls, so the committed motion is exactly the rollout's) while recording the contact
+  forces as :func:`jmocap.data.synthetic.physics.simulate_tracking` does;
+* when the pelvis tilts more than ``backtrack_tilt_deg`` from the plan's, the search returns
+  ``backtrack_windows`` windows and draws ``backtrack_factor`` times more samples; after
+  ``max_backtracks`` the simulation fails (:class:`GenerationError`, the clip is redrawn).
+
+The residual root wrench is zero on every frame by construction. See docs/data.md.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from mujoco import rollout
+
+from jmocap.constants import GRAVITY
+from jmocap.data.synthetic.character import Character
+from jmocap.data.synthetic.curves import _wrap
+from jmocap.data.synthetic.errors import GenerationError
+
+
+@dataclass(frozen=True)
+class SamplingConfig:
+    """The sampling controller of :func:`simulate_sampling` (``PhysicsConfig.controller =
+    "sampling"``). Cost weights are per frame, on errors in metres and radians."""
+
+    samples: int = 64
+    window: int = 3  # frames per control window
+    lookahead: int = 12  # frames simulated past the window to score a sample
+    pd_freq_hz: float = 8.0
+    sigma: float = 0.1  # rad, the offsets' standard deviation
+    carry: float = 0.7  # the next window's mean offset, times the chosen one
+    lookahead_gain: float = 0.5  # the offset kept over the lookahead
+    w_support: float = 10.0  # root - feet (horizontal), against the plan's
+    w_height: float = 10.0
+    w_rot: float = 2.0
+    w_pose: float = 5.0  # mean squared hinge error
+    w_vel: float = 1.0  # root linear velocity
+    w_pos: float = 0.3  # root world position
+    feedforward_margin_m: float = 0.005  # plan foot geoms this near the floor support it (feed-forward)
+    backtrack_tilt_deg: float = 25.0
+    backtrack_windows: int = 2
+    backtrack_factor: int = 4
+    max_backtracks: int = 8
+    threads: int = 2  # rollout threads
+
+
+def sampling_model(ch: Character, dt: float, contact_timeconst: float, freq_hz: float):
+    """The tracking simulation's model (:func:`~jmocap.data.synthetic.physics.simulation_model`)
+    with a position servo on every hinge; returns ``(model, kv)`` with ``kv`` (nv,) each dof's
+    servo damping (0 on the root)."""
+    from jmocap.data.synthetic.physics import simulation_model
+    from jmocap.model import scaled_spec
+
+    base = simulation_model(ch.mj, dt, contact_timeconst)
+    d = mujoco.MjData(base)
+    d.qpos[:] = ch.q_stand
+    mujoco.mj_forward(base, d)
+    M = np.zeros((base.nv, base.nv))
+    mujoco.mj_fullM(base, d, M)
+    spec = scaled_spec(None, round(ch.height, 2), float(np.sum(ch.mj.body_mass)))
+    w = 2 * math.pi * freq_hz
+    kv = np.zeros(base.nv)
+    for j in range(base.njnt):
+        if base.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
+            continue
+        dof = int(base.jnt_dofadr[j])
+        inertia = M[dof, dof]
+        act = spec.add_actuator()
+        act.name = "servo_" + mujoco.mj_id2name(base, mujoco.mjtObj.mjOBJ_JOINT, j)
+        act.target = mujoco.mj_id2name(base, mujoco.mjtObj.mjOBJ_JOINT, j)
+        act.trntype = mujoco.mjtTrn.mjTRN_JOINT
+        act.set_to_position(kp=inertia * w * w, kv=2 * inertia * w)
+        act.ctrllimited = False
+        act.forcelimited = False
+        kv[dof] = 2 * inertia * w
+    mj = spec.compile()
+    if mj.nq != base.nq or mj.nv != base.nv or not np.allclose(mj.body_mass, base.body_mass) \
+            or not np.allclose(mj.body_pos, base.body_pos) or not np.allclose(mj.geom_size, base.geom_size):
+        raise ValueError("the sampling model does not reproduce the character's model")
+    mj.opt.timestep = base.opt.timestep
+    mj.opt.integrator = base.opt.integrator
+    mj.opt.cone = base.opt.cone
+    mj.geom_friction[:] = base.geom_friction
+    mj.dof_damping[:] = base.dof_damping
+    mj.geom_solref[:] = base.geom_solref
+    return mj, kv
+
+
+def feedforward(ch: Character, mj, q_ref, qd_ref, qdd_ref, cfg) -> np.ndarray:
+    """(T, nv) hinge torques (root entries 0) of the QP tracker at the plan's own states, its
+    contacts those foot geoms within ``feedforward_margin_m`` of the floor: the torques that
+    would realise the plan's accelerations where its contacts can balance them."""
+    from jmocap.data.synthetic.physics import (
+        _contact_jacobians,
+        _control,
+        _floor_contacts,
+        foot_geoms,
+        pyramid_edges,
+    )
+
+    m = copy.deepcopy(mj)
+    m.geom_margin[:] = cfg.sampling.feedforward_margin_m
+    d = mujoco.MjData(m)
+    d.qpos[:] = ch.q_stand
+    mujoco.mj_forward(m, d)
+    M = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, M)
+    sw = np.sqrt(np.diag(M)) * np.r_[np.full(6, cfg.w_root), np.full(m.nv - 6, cfg.w_joint)]
+    mass = float(np.sum(m.body_mass))
+    floor, geom_foot, geom_body = foot_geoms(ch, m)
+    E = pyramid_edges()
+    jp = np.zeros((3, m.nv))
+    out = np.zeros((len(q_ref), m.nv))
+    for k in range(len(q_ref)):
+        d.qpos[:], d.qvel[:] = q_ref[k], qd_ref[k]
+        mujoco.mj_forward(m, d)
+        con, _ = _floor_contacts(d, floor, geom_foot, geom_body)
+        A, Jc = _contact_jacobians(m, d, con, E, jp)
+        mujoco.mj_fullM(m, d, M)
+        out[k] = _control(M, d.qfrc_bias.copy(), A, Jc, Jc @ d.qvel, qdd_ref[k], sw, cfg, mass, False)
+    out[:, :6] = 0.0
+    return out
+
+
+def _support_points(mj, q, sites) -> np.ndarray:
+    """(len(q), 2) the mean horizontal position of the contact sites of each configuration."""
+    d = mujoco.MjData(mj)
+    out = np.zeros((len(q), 2))
+    for i, x in enumerate(q):
+        d.qpos[:] = x
+        mujoco.mj_kinematics(mj, d)
+        out[i] = d.site_xpos[sites, :2].mean(0)
+    return out
+
+
+def _tilt(quat_a: np.ndarray, quat_b: np.ndarray) -> float:
+    """Angle (rad) between the body z axes of two orientations."""
+    Ra, Rb = np.zeros(9), np.zeros(9)
+    mujoco.mju_quat2Mat(Ra, quat_a / np.linalg.norm(quat_a))
+    mujoco.mju_quat2Mat(Rb, quat_b / np.linalg.norm(quat_b))
+    za, zb = Ra.reshape(3, 3)[:, 2], Rb.reshape(3, 3)[:, 2]
+    return float(np.arccos(np.clip(za @ zb, -1.0, 1.0)))
+
+
+def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg, lead: int = 0,
+                      rng: np.random.Generator | None = None) -> dict:
+    """Track a kinematic motion in MuJoCo C by sampling-based control (module docstring): joint
+    servos, feed-forward hinge torques and contacts, never a root force. ``cfg`` is a
+    :class:`~jmocap.data.synthetic.physics.PhysicsConfig` (its ``sampling`` settings, substeps,
+    contact model, labels); ``lead`` as :func:`~jmocap.data.synthetic.physics.simulate_tracking`,
+    whose return value this has (``residual`` all zeros; ``stats`` adds ``controller``,
+    ``backtracks`` and ``samples_simulated``). Deterministic in ``rng`` (default seed 0)."""
+    from jmocap.data.synthetic.physics import (
+        _contact_forces,
+        _floor_contacts,
+        floor_split,
+        foot_geoms,
+        frames_from_substeps,
+        reference_derivatives,
+    )
+
+    sc = cfg.sampling
+    rng = np.random.default_rng(0) if rng is None else rng
+    T = len(q_ref)
+    if not 0 <= lead < T:
+        raise ValueError(f"lead-in of {lead} frames needs 0 <= lead < len(q_ref) = {T}")
+    n = cfg.substeps_per_frame or max(1, int(math.ceil(1.0 / fps / cfg.max_dt - 1e-9)))
+    dt = 1.0 / fps / n
+    mj, kv = sampling_model(ch, dt, cfg.contact_timeconst, sc.pd_freq_hz)
+    nv, nu = mj.nv, mj.nu
+    hinge_q = np.array([mj.jnt_qposadr[mj.actuator_trnid[a, 0]] for a in range(nu)])
+    # one frame past the end, the last held, so that the last frame's forces have their substeps
+    qr = np.concatenate([q_ref, q_ref[-1:]])
+    Te = T + 1
+    qd_ref, qdd_ref = reference_derivatives(mj, qr, fps)
+    qd_ref[-1], qdd_ref[-1] = 0.0, 0.0
+    ff = feedforward(ch, mj, qr, qd_ref, qdd_ref, cfg)
+    sites = list(ch.contact_sites)
+    support_ref = _support_points(mj, qr, sites)
+    mass = float(np.sum(mj.body_mass))
+    weight = mass * GRAVITY
+    floor, geom_foot, geom_body = foot_geoms(ch, mj)
+    z_fall = cfg.fall_height * ch.z_stand
+    cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg))
+
+    S = Te * n
+    sub_tau = np.zeros((S, nv))
+    sub_grf = np.zeros((S, 4, 3))
+    sub_foot = np.zeros((S, 2, 3))
+    sub_moment = np.zeros((S, 2, 3))
+    sub_mid = np.zeros((S, 2, 3))
+    q_out = np.zeros((Te, mj.nq))
+    qd_out = np.zeros((Te, nv))
+    site_z = np.zeros((Te, 4))
+    root_err = np.zeros((Te, 2))
+    nonfoot = np.zeros(Te, int)
+
+    def targets(k0: int, k1: int):
+        """Servo targets (steps, nu) and feed-forward (steps, nv) of the substeps of frames k0..k1-1."""
+        a = np.arange(n) / n
+        tq = [qr[k, hinge_q][None] * (1 - a[:, None]) + qr[min(k + 1, Te - 1), hinge_q][None] * a[:, None]
+              for k in range(k0, k1)]
+        tf = [ff[k][None] * (1 - a[:, None]) + ff[min(k + 1, Te - 1)][None] * a[:, None] for k in range(k0, k1)]
+        return np.concatenate(tq), np.concatenate(tf)
+
+    full_spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    keep_spec = mujoco.mjtState.mjSTATE_INTEGRATION
+    control_spec = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_QFRC_APPLIED
+    state = np.zeros(mujoco.mj_stateSize(mj, full_spec))
+    d = mujoco.MjData(mj)
+    d.qpos[:] = qr[0]
+    d.qvel[:] = qd_ref[0]
+    mujoco.mj_forward(mj, d)
+    datas = [mujoco.MjData(mj) for _ in range(max(1, sc.threads))]
+    dk = mujoco.MjData(mj)
+    nq = mj.nq
+
+    def cost(states: np.ndarray, k: int) -> np.ndarray:
+        """Cost (N,) of the sampled states (N, nstate) at frame k."""
+        q = states[:, 1:1 + nq]
+        v = states[:, 1 + nq:1 + nq + nv]
+        ref = qr[k]
+        sup = np.zeros((len(q), 2))
+        for i, x in enumerate(q):
+            dk.qpos[:] = x
+            mujoco.mj_kinematics(mj, dk)
+            sup[i] = dk.site_xpos[sites, :2].mean(0)
+        rel = (q[:, :2] - sup) - (ref[:2] - support_ref[k])
+        dot = np.abs(q[:, 3:7] @ ref[3:7]) / np.linalg.norm(q[:, 3:7], axis=1)
+        rot = 2 * np.arccos(np.clip(dot, 0.0, 1.0))
+        return (sc.w_support * np.sum(rel**2, 1) + sc.w_height * (q[:, 2] - ref[2]) ** 2 + sc.w_rot * rot**2
+                + sc.w_pose * np.mean(_wrap(q[:, 7:] - ref[7:]) ** 2, 1)
+                + sc.w_vel * np.sum((v[:, :3] - qd_ref[k, :3]) ** 2, 1)
+                + sc.w_pos * np.sum((q[:, :3] - ref[:3]) ** 2, 1))
+
+    def commit(k0: int, k1: int, ctrl: np.ndarray, force: np.ndarray) -> None:
+        """Step MuJoCo C over frames k0..k1-1 with the chosen controls, recording the forces."""
+        e_rot = np.zeros(3)
+        for k in range(k0, k1):
+            q_out[k], qd_out[k] = d.qpos, d.qvel
+            mujoco.mju_subQuat(e_rot, qr[k, 3:7] / np.linalg.norm(qr[k, 3:7]), d.qpos[3:7])
+            root_err[k] = np.linalg.norm(qr[k, :3] - d.qpos[:3]), np.linalg.norm(e_rot)
+            nonfoot[k] = 0
+            for i in range(n):
+                j = (k - k0) * n + i
+                s = k * n + i
+                mujoco.mj_step1(mj, d)
+                con, other = _floor_contacts(d, floor, geom_foot, geom_body)
+                nonfoot[k] += other
+                sp = d.site_xpos[sites].copy()
+                if i == 0:
+                    site_z[k] = sp[:, 2]
+                d.ctrl[:] = ctrl[j]
+                d.qfrc_applied[:] = force[j]
+                mujoco.mj_step2(mj, d)
+                # the generalised force the servos and the feed-forward applied: implicitfast
+                # integrates the servos' damping implicitly, so its effective force is taken at
+                # the new velocity (qacc the step's acceleration)
+                sub_tau[s] = d.qfrc_actuator + d.qfrc_applied - dt * kv * d.qacc
+                fw = _contact_forces(mj, d, con)
+                for f in range(2):
+                    on = con.foot == f
+                    heel, toe = sp[2 * f], sp[2 * f + 1]
+                    sub_mid[s, f] = (heel + toe) / 2
+                    sub_grf[s, 2 * f: 2 * f + 2] = 0.0
+                    sub_foot[s, f] = 0.0
+                    sub_moment[s, f] = 0.0
+                    if on.any():
+                        sub_grf[s, 2 * f: 2 * f + 2] = floor_split(con.pos[on], fw[on], heel, toe, cfg.site_floor_m)
+                        sub_foot[s, f] = fw[on].sum(0)
+                        sub_moment[s, f] = np.cross(con.pos[on], fw[on]).sum(0)
+
+    snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    prev = np.zeros(nu)
+    k0, backtracks, retry_until, simulated = 0, 0, -1, 0
+    while k0 < Te - 1:
+        keep = np.zeros(mujoco.mj_stateSize(mj, keep_spec))
+        mujoco.mj_getState(mj, d, keep, keep_spec)
+        snapshots[k0] = (keep, prev.copy())
+        k1 = min(k0 + sc.window, Te - 1)
+        k2 = min(k1 + sc.lookahead, Te - 1)
+        N = sc.samples * (sc.backtrack_factor if k0 < retry_until else 1)
+        base_q, base_f = targets(k0, k2)
+        steps = (k1 - k0) * n
+        off = sc.carry * prev[None] + rng.normal(size=(N, nu)) * sc.sigma
+        off[0] = sc.carry * prev
+        ctrl = np.repeat(base_q[None], N, axis=0)
+        ctrl[:, :steps] += off[:, None, :]
+        ctrl[:, steps:] += sc.lookahead_gain * off[:, None, :]
+        controls = np.concatenate([ctrl, np.broadcast_to(base_f[None], (N,) + base_f.shape)], axis=-1)
+        mujoco.mj_getState(mj, d, state, full_spec)
+        states, _ = rollout.rollout(mj, datas, state[None], controls, control_spec=control_spec,
+                                    nstep=(k2 - k0) * n, initial_warmstart=d.qacc_warmstart[None].copy())
+        simulated += N * (k2 - k0) * n
+        total = np.zeros(N)
+        for j, k in enumerate(range(k0 + 1, k2 + 1)):
+            c = cost(states[:, (j + 1) * n - 1], k)
+            total += np.where(np.isfinite(c), c, np.inf)
+        best = int(np.argmin(total))
+        prev = off[best]
+        commit(k0, k1, ctrl[best, :steps], base_f[:steps])
+        bad = (not np.all(np.isfinite(d.qpos)) or d.qpos[2] < z_fall
+               or d.xmat[ch.pelvis].reshape(3, 3)[2, 2] < cos_tilt
+               or _tilt(d.qpos[3:7], qr[k1, 3:7]) > math.radians(sc.backtrack_tilt_deg))
+        if bad:
+            backtracks += 1
+            if backtracks > sc.max_backtracks:
+                raise GenerationError(f"the sampling controller lost balance at frame {k1} after "
+                                      f"{sc.max_backtracks} backtracks")
+            back = max(0, k0 - (sc.backtrack_windows - 1) * sc.window)
+            back = max(k for k in snapshots if k <= back)
+            keep, prev = snapshots[back]
+            mujoco.mj_setState(mj, d, keep, keep_spec)
+            retry_until = k1 + sc.window
+            k0 = back
+            continue
+        k0 = k1
+    q_out[Te - 1], qd_out[Te - 1] = d.qpos, d.qvel
+    sim = frames_from_substeps(
+        ch, q_ref, q_out[:T], qd_out[:T], fps, n, lead, cfg, weight,
+        dict(tau=sub_tau[:T * n], grf=sub_grf[:T * n], foot=sub_foot[:T * n], moment=sub_moment[:T * n],
+             mid=sub_mid[:T * n], rescue=np.zeros(T * n, bool)),
+        site_z[:T], root_err[:T], int(nonfoot[:T].sum()))
+    sim["stats"].update(controller="sampling", backtracks=int(backtracks), samples_simulated=int(simulated))
+    return sim
