@@ -430,6 +430,24 @@ def test_cli_data_synth(tmp_path, capsys):
     assert Archive(ext).ok[0]["kind"] == "reach"
 
 
+def test_cli_data_synth_sampling_controller(tmp_path, capsys):
+    """``--controller sampling`` is recorded in the archive's settings and in the clip's physics
+    metadata, and its clip has no root residual; without ``--physics`` it is refused."""
+    out = tmp_path / "samp"
+    assert main(["data", "synth", "--out", str(out), "--clips", "1", "--seed", "4", "--frames-per-clip", "20",
+                 "--kinds", "walk", "--physics", "--controller", "sampling", "--quiet"]) == 0
+    cfg = json.loads((out / "archive.json").read_text())["config"]
+    assert cfg["physics_cfg"]["controller"] == "sampling"
+    clip = Archive(out).load("synth_000000")
+    assert clip.meta["physics"]["controller"] == "sampling"
+    assert clip.meta["physics"]["residual_frame_share"] == 0.0
+    np.testing.assert_array_equal(clip.gt_residual, 0.0)
+    capsys.readouterr()
+    assert main(["data", "synth", "--out", str(tmp_path / "x"), "--clips", "1", "--controller", "sampling",
+                 "--quiet"]) == 2
+    assert "--controller needs --physics" in capsys.readouterr().err
+
+
 def test_cli_bad_arguments(capsys):
     with pytest.raises(SystemExit):
         main(["data", "synth", "--out", "x", "--clips", "1", "--frames-per-clip", "9:3"])

@@ -9,8 +9,11 @@ positions and velocities -- and jmocap's one friction pyramid (``friction_pyrami
 Tolerances: Newton's law 2 % of body weight per frame (the frame forces are the tent average
 that matches central differences exactly for linear coordinates; the centre of mass is a
 nonlinear function of q, which leaves an O(dt) discretisation error); friction cone 1e-3 N
-(float32 storage); CoP within 2 cm of the foot's sole footprint (the frame values average the
-substeps of +-1 frame, during which a rocking foot moves).
+(float32 storage); CoP within 2 cm of the foot's sole footprints of frames t-1 .. t+1 (the frame
+values average the substeps of +-1 frame, during which a rocking foot moves).
+
+Every clip test runs on both controllers of the generator: the QP tracker with its rescue
+residual and the sampling controller without any root force.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from tests.conftest import mujoco_com
 from jmocap.constants import FRICTION_MU, GRAVITY
 from jmocap.data import synthetic as S
 from jmocap.data.synthetic.physics import (
+    PhysicsConfig,
     floor_split,
     lever_split,
     simulation_model,
@@ -44,9 +48,12 @@ def _upright(quat):
     return np.array(out)
 
 
-@pytest.fixture(scope="module", params=["walk", "run"])
+@pytest.fixture(scope="module", params=[("walk", "qp"), ("run", "qp"), ("walk", "sampling"), ("run", "sampling")],
+                ids=lambda p: "-".join(p))
 def clip(request):
-    return S.generate_clip(1, 0, S.SynthConfig(frames=FRAMES, kinds=(request.param,), physics=True))
+    kind, controller = request.param
+    return S.generate_clip(1, 0, S.SynthConfig(frames=FRAMES, kinds=(kind,), physics=True,
+                                               physics_cfg=PhysicsConfig(controller=controller)))
 
 
 def _weight(clip):
@@ -107,10 +114,16 @@ def test_newton_contacts_plus_residual_explain_the_com(clip):
     assert err.max() < 0.02, err.max()
 
 
-@pytest.mark.xfail(strict=True, reason="tracking the fixed kinematic plan is not balance-stable (without "
-                   "the rescue every walk and run falls; docs/data.md): the rescue residual is on in "
-                   "15-40 % of walking and running frames")
-def test_residual_zero_on_most_frames(clip):
+def test_residual_zero_on_most_frames(clip, request):
+    """Issue 23: the ground truth's motion is explained by contact forces alone on >= 95 % of
+    the frames of walking and running clips. The sampling controller never applies a root force;
+    the QP tracker cannot do without its rescue residual (a strict xfail that records it)."""
+    assert clip.meta["physics"]["controller"] in ("qp", "sampling")
+    if clip.meta["physics"]["controller"] == "qp":
+        request.applymarker(pytest.mark.xfail(
+            strict=True, reason="the QP tracker following the fixed kinematic plan is not balance-stable "
+            "(without the rescue every walk and run falls; docs/data.md): its rescue residual is on in "
+            "15-40 % of walking and running frames"))
     assert np.mean(np.all(clip.gt_residual == 0, axis=1)) >= 0.95
 
 
@@ -168,7 +181,7 @@ def test_no_force_at_a_raised_site(clip):
     """A site carries force only when it is on the floor, or when it is the lower site of a
     foot touching the floor with neither site down (a contact beyond both). The frame value
     averages the substeps of +-1 frame, so a site counts as down when it is on this frame or on
-    a neighbouring one."""
+    a neighbouring one (the last frame, whose next one the clip does not hold, is not checked)."""
     thr = clip.meta["contact_rule"]["min_vertical_force_bw"] * _weight(clip)
     floor_m = clip.meta["contact_rule"]["site_floor_m"]
     z = _site_heights(clip)
@@ -180,7 +193,8 @@ def test_no_force_at_a_raised_site(clip):
     lower = np.stack([pair[..., 0] <= pair[..., 1], pair[..., 1] < pair[..., 0]], -1).reshape(-1, 4)
     neither = np.repeat(~down.reshape(-1, 2, 2).any(-1), 2, axis=1)
     loaded = clip.gt_grf[..., 2] > thr
-    assert not np.any(loaded & ~down & ~(neither & lower))
+    # the last frame's forces average substeps after it too, whose heights the clip does not hold
+    assert not np.any((loaded & ~down & ~(neither & lower))[:-1])
 
 
 def test_per_foot_force_cop_free_moment(clip):
@@ -298,3 +312,47 @@ def test_generated_clips_start_settled():
     # stand's own sway moves it by a few % later)
     fz = clip.gt_grf[:3, :, 2].sum(axis=1) / _weight(clip)
     assert np.all(np.abs(fz - 1.0) < 0.01), fz
+
+
+def test_sampling_model_is_the_character_with_a_servo_on_every_hinge():
+    """The sampling controller's model (MjSpec rebuild + position servos) is the simulation
+    model of the character itself (MuJoCo C: same masses, inertias, geoms, joints, options), a
+    servo drives every hinge and nothing drives the root."""
+    from jmocap.data.synthetic.sampling import sampling_model
+
+    ch = S.character(1.68)
+    base = simulation_model(ch.mj, 0.002, 0.008)
+    mj, kv = sampling_model(ch, 0.002, 0.008, 8.0)
+    for name in ("body_mass", "body_inertia", "body_pos", "body_ipos", "geom_size", "geom_pos",
+                 "jnt_range", "geom_friction", "geom_solref", "dof_armature"):
+        np.testing.assert_allclose(getattr(mj, name), getattr(base, name), rtol=1e-12, atol=1e-12, err_msg=name)
+    assert (mj.opt.timestep, mj.opt.integrator, mj.opt.cone) == (base.opt.timestep, base.opt.integrator, base.opt.cone)
+    hinges = [j for j in range(mj.njnt) if mj.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE]
+    assert sorted(mj.actuator_trnid[:, 0]) == hinges
+    assert np.all(kv[:6] == 0) and np.all(kv[6:] > 0)
+    # a servo at its target with zero velocity exerts nothing
+    d = mujoco.MjData(mj)
+    d.qpos[:] = ch.q_stand
+    d.ctrl[:] = ch.q_stand[mj.jnt_qposadr[mj.actuator_trnid[:, 0]]]
+    mujoco.mj_forward(mj, d)
+    np.testing.assert_allclose(d.qfrc_actuator, 0.0, atol=1e-9)
+
+
+def test_sampling_controller_is_deterministic_and_never_pushes_the_root():
+    """The same motion and seed give the same simulation bit for bit (``mujoco.rollout`` over
+    two threads included), with no root force on any frame (Newton's law with the recorded
+    contact forces alone: ``test_newton_contacts_plus_residual_explain_the_com`` on its clips)."""
+    from jmocap.data.synthetic.clips import simulate
+    from jmocap.data.synthetic.repertoire import generate_motion
+
+    m = generate_motion(1.7, np.random.default_rng(3), 1.5, 30.0, ("walk",))
+    q = np.concatenate([np.repeat(m.q[:1], 5, axis=0), m.q[:30]])
+    cfg = PhysicsConfig(controller="sampling")
+    a = simulate(m.character, q, 30.0, cfg, lead=5, rng=np.random.default_rng(7))
+    b = simulate(m.character, q, 30.0, cfg, lead=5, rng=np.random.default_rng(7))
+    for key in ("q", "qd", "tau", "grf", "contacts"):
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert a["stats"]["controller"] == "sampling"
+    np.testing.assert_array_equal(a["residual"], 0.0)
+    np.testing.assert_array_equal(a["tau"][:, :6], 0.0)
+    assert len(a["q"]) == 30 and np.all(np.isfinite(a["q"]))

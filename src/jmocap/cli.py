@@ -110,6 +110,10 @@ def _data(p: argparse.ArgumentParser) -> None:
     s.add_argument("--physics", action="store_true",
                    help="track each motion in MuJoCo simulation moved by contacts (gt_tau, gt_grf, "
                         "gt_residual, per-foot force, CoP, free moment; contact labels by force and floor)")
+    s.add_argument("--controller", choices=["qp", "sampling"], default="qp",
+                   help="with --physics: the simulation's controller: 'qp' (default) the QP tracker, with a "
+                        "recorded root residual where the plan is infeasible; 'sampling' sampling-based "
+                        "control (mujoco.rollout), no root force ever, 5-10x slower (docs/data.md)")
     s.add_argument("--frames-per-clip", type=_frames_arg, default=(150, 300), metavar="N|MIN:MAX",
                    help="clip length in frames (default 150:300)")
     s.add_argument("--layout", default="body25", choices=["body25", "coco17", "h36m17"],
@@ -160,8 +164,13 @@ def cmd_data_synth(args) -> int:
     if args.clips < 0:
         print("jmocap data synth: --clips must be >= 0", file=sys.stderr)
         return 2
+    if args.controller != "qp" and not args.physics:
+        print("jmocap data synth: --controller needs --physics", file=sys.stderr)
+        return 2
+    from jmocap.data.synthetic.physics import PhysicsConfig
+
     fields = dict(frames=args.frames_per_clip, fps=args.fps, layout=args.layout, physics=args.physics,
-                  kinds=args.kinds)
+                  kinds=args.kinds, physics_cfg=PhysicsConfig(controller=args.controller))
     config = SynthConfig.extended_generator(**fields) if args.extended else SynthConfig(**fields)
     if args.no_corruption:
         config = dataclasses.replace(config, corruption=Corruption.none())

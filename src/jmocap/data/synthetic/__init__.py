@@ -46,11 +46,14 @@ The package, one concern per module (each imports only the ones above it):
   height, COM filter, foot targets, leg solve), :func:`check_motion`;
 * :mod:`~jmocap.data.synthetic.repertoire` -- the motion segments, :func:`generate_motion`;
 * :mod:`~jmocap.data.synthetic.ground_truth` -- :func:`velocities`, :func:`contact_labels`;
-* :mod:`~jmocap.data.synthetic.physics` -- :class:`PhysicsConfig`, :func:`simulate_tracking`;
+* :mod:`~jmocap.data.synthetic.physics` -- :class:`PhysicsConfig`, :class:`SamplingConfig`,
+  :func:`simulate_tracking` (the QP tracker);
+* :mod:`~jmocap.data.synthetic.sampling` -- :func:`simulate_sampling` (sampling-based control
+  with ``mujoco.rollout``: no root force);
 * :mod:`~jmocap.data.synthetic.cameras`, :mod:`~jmocap.data.synthetic.keypoints` --
   :class:`CameraConfig`, :func:`sample_camera`; :class:`Corruption`,
   :func:`corrupt_keypoints`, :func:`clean_keypoints2d`;
-* :mod:`~jmocap.data.synthetic.clips` -- :class:`SynthConfig`, :func:`generate_clip`,
+* :mod:`~jmocap.data.synthetic.clips` -- :class:`SynthConfig`, :func:`generate_clip`, :func:`simulate`,
   :func:`synthesize`;
 * :mod:`~jmocap.data.synthetic.imu` -- six virtual IMUs on the same motion
   (:func:`~jmocap.data.synthetic.imu.generate_imu_clip`, ``IMUSynthConfig``, ``IMUCorruption``;
@@ -71,6 +74,7 @@ from jmocap.data.synthetic.clips import (
     SynthConfig,
     clip_name,
     generate_clip,
+    simulate,
     synthesize,
 )
 from jmocap.data.synthetic.errors import GenerationError
@@ -82,7 +86,7 @@ from jmocap.data.synthetic.ground_truth import (
 )
 from jmocap.data.synthetic.keypoints import Corruption, clean_keypoints2d, corrupt_keypoints
 from jmocap.data.synthetic.motion import Motion, check_motion, motion_report
-from jmocap.data.synthetic.physics import PhysicsConfig, simulate_tracking
+from jmocap.data.synthetic.physics import PhysicsConfig, SamplingConfig, simulate_tracking
 from jmocap.data.synthetic.plan import MOTION_KINDS, Plan, Pose, Segment, Stance
 from jmocap.data.synthetic.repertoire import (
     CLASSIC_KINDS,
@@ -101,6 +105,7 @@ from jmocap.data.synthetic.repertoire import (
     seg_squat,
     seg_stand,
 )
+from jmocap.data.synthetic.sampling import simulate_sampling
 
 __all__ = [
     "CLASSIC_KINDS",
@@ -145,6 +150,9 @@ __all__ = [
     "seg_reach",
     "seg_squat",
     "seg_stand",
+    "SamplingConfig",
+    "simulate",
+    "simulate_sampling",
     "simulate_tracking",
     "site_trajectories",
     "synthesize",

@@ -28,7 +28,7 @@ from jmocap.data.synthetic.ground_truth import (
 )
 from jmocap.data.synthetic.keypoints import Corruption, corrupt_keypoints
 from jmocap.data.synthetic.motion import check_motion
-from jmocap.data.synthetic.physics import PhysicsConfig, simulate
+from jmocap.data.synthetic.physics import PhysicsConfig, simulate_tracking
 from jmocap.data.synthetic.plan import MOTION_KINDS
 from jmocap.data.synthetic.repertoire import (
     CLASSIC_KINDS,
@@ -36,6 +36,7 @@ from jmocap.data.synthetic.repertoire import (
     SEGMENTS,
     generate_motion,
 )
+from jmocap.data.synthetic.sampling import simulate_sampling
 from jmocap.layouts import CONTACT_SITES, get_layout
 
 GENERATOR = "jmocap.data.synthetic/1"
@@ -87,6 +88,19 @@ def _jsonable(x):
 def _stance_runs(planted: np.ndarray) -> dict:
     return {name: [[int(a), int(b)] for a, b in _runs(planted[:, i])]
             for i, name in enumerate(CONTACT_SITES)}
+
+
+def simulate(ch, q_ref: np.ndarray, fps: float, cfg: PhysicsConfig = PhysicsConfig(),  # noqa: B008
+             lead: int = 0, rng: np.random.Generator | None = None) -> dict:
+    """The physics variant's simulation with ``cfg.controller``:
+    :func:`~jmocap.data.synthetic.physics.simulate_tracking` ("qp", the QP tracker with its rescue
+    residual) or :func:`~jmocap.data.synthetic.sampling.simulate_sampling` ("sampling", no root
+    force, drawing from ``rng``)."""
+    if cfg.controller == "qp":
+        return simulate_tracking(ch, q_ref, fps, cfg, lead)
+    if cfg.controller == "sampling":
+        return simulate_sampling(ch, q_ref, fps, cfg, lead, rng)
+    raise ValueError(f"unknown physics controller {cfg.controller!r} (qp, sampling)")
 
 
 def _lead_in(q: np.ndarray, start: int, frames: int) -> np.ndarray:

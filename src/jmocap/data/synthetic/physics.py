@@ -33,7 +33,41 @@ from jmocap.data.synthetic.character import Character
 from jmocap.data.synthetic.curves import _wrap
 from jmocap.data.synthetic.errors import GenerationError
 from jmocap.data.synthetic.ground_truth import velocities
-from jmocap.data.synthetic.sampling import SamplingConfig
+
+
+@dataclass(frozen=True)
+class SamplingConfig:
+    """The sampling controller of :func:`jmocap.data.synthetic.sampling.simulate_sampling`
+    (``PhysicsConfig.controller = "sampling"``). Cost weights are per frame, on errors in metres and radians."""
+
+    samples: int = 64
+    window: int = 3  # frames per control window
+    lookahead: int = 12  # frames simulated past the window to score a sample
+    pd_freq_hz: float = 8.0
+    sigma: float = 0.1  # rad, the offsets' standard deviation
+    # the hinges sampled with the full ``sigma`` (names containing one of these: the legs and
+    # the trunk, which balance the body); the others (arms, head) with ``other_sigma`` x sigma
+    sampled: tuple[str, ...] = ("hip", "knee", "ankle", "foot", "spine")
+    other_sigma: float = 1.0
+    # offsets blend linearly from the one in force to the sample's over the window's first
+    # ``ramp_frames`` frames (continuous servo targets; 0: switched at the window's start)
+    ramp_frames: int = 1
+    carry: float = 0.7  # the next window's mean offset, times the chosen one
+    lookahead_gain: float = 0.5  # the offset kept over the lookahead
+    elite: int = 1  # > 1: the mean of this many best samples is tried too (measured, not taken: docs/data.md)
+    w_support: float = 10.0  # root - feet (horizontal), against the plan's
+    w_height: float = 10.0
+    w_rot: float = 2.0
+    w_pose: float = 5.0  # mean squared hinge error
+    w_vel: float = 1.0  # root linear velocity
+    w_pos: float = 0.3  # root world position
+    feedforward_margin_m: float = 0.005  # plan foot geoms this near the floor support it (feed-forward)
+    backtrack_tilt_deg: float = 25.0
+    backtrack_windows: int = 2
+    backtrack_factor: int = 4  # samples x this after a backtrack
+    backtrack_sigma: float = 2.0  # and sigma x this
+    max_backtracks: int = 8
+    threads: int = 2  # rollout threads
 
 
 @dataclass(frozen=True)
@@ -322,20 +356,6 @@ def foot_geoms(ch: Character, mj: mujoco.MjModel):
     return floor, geom_foot, np.array(mj.geom_bodyid)
 
 
-def simulate(ch: Character, q_ref: np.ndarray, fps: float, cfg: PhysicsConfig = PhysicsConfig(),  # noqa: B008
-             lead: int = 0, rng: np.random.Generator | None = None) -> dict:
-    """The physics variant's simulation with ``cfg.controller``: :func:`simulate_tracking` ("qp")
-    or :func:`jmocap.data.synthetic.sampling.simulate_sampling` ("sampling", drawing from
-    ``rng``)."""
-    if cfg.controller == "qp":
-        return simulate_tracking(ch, q_ref, fps, cfg, lead)
-    if cfg.controller == "sampling":
-        from jmocap.data.synthetic.sampling import simulate_sampling
-
-        return simulate_sampling(ch, q_ref, fps, cfg, lead, rng)
-    raise ValueError(f"unknown physics controller {cfg.controller!r} (qp, sampling)")
-
-
 def _rescue(on: bool, pos_err: float, rot_err: float, cfg: PhysicsConfig) -> bool:
     """Hysteresis of the rescue residual: on when the root is more than ``rescue_pos_m`` or
     ``rescue_rot_deg`` off the reference, off again when below ``rescue_off`` times both."""
@@ -485,6 +505,7 @@ def frames_from_substeps(ch: Character, q_ref, q_out, qd_out, fps: float, n: int
     res_frames = np.any(residual != 0, axis=1)
     hinge_err = np.abs(_wrap(q_out[:, 7:] - q_ref[:, 7:]))
     stats = dict(
+        controller=cfg.controller,
         substeps=n,
         timestep=dt,
         settle_frames=int(lead),

@@ -15,8 +15,8 @@ sampling control (Huang et al. 2022, Sec. 3.1):
   feed-forward hinge torque: the QP tracker's torques at the plan's own state, whose root rows
   the plan's contacts balance. The root is never actuated;
 * per control window (``window`` frames) ``samples`` offsets are drawn (Gaussian, standard
-  deviation ``sigma`` rad, around ``carry`` times the previous window's offset), each is rolled
-  out by ``mujoco.rollout`` (MuJoCo C, multi-threaded) over the window and a ``lookahead`` of
+  deviation ``sigma`` rad, around ``carry`` times the previous window's offset), blended from
+  the offset in force over the window's first ``ramp_frames`` frames, each is rolled out by ``mujoco.rollout`` (MuJoCo C, multi-threaded) over the window and a ``lookahead`` of
   further frames (the offset then decayed to ``lookahead_gain`` of itself), and scored against
   the plan frame by frame: the root's horizontal position *relative to the feet* (balance
   over the support, not the plan's world path: a walk may lag its plan), its height, its
@@ -25,7 +25,8 @@ sampling control (Huang et al. 2022, Sec. 3.1):
   controls, so the committed motion is exactly the rollout's) while recording the contact
   forces as :func:`jmocap.data.synthetic.physics.simulate_tracking` does;
 * when the pelvis tilts more than ``backtrack_tilt_deg`` from the plan's, the search returns
-  ``backtrack_windows`` windows and draws ``backtrack_factor`` times more samples; after
+  ``backtrack_windows`` windows and draws ``backtrack_factor`` times more samples with
+  ``backtrack_sigma`` times the spread; after
   ``max_backtracks`` the simulation fails (:class:`GenerationError`, the clip is redrawn).
 
 The residual root wrench is zero on every frame by construction. See docs/data.md.
@@ -35,7 +36,6 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass
 
 import mujoco
 import numpy as np
@@ -45,41 +45,26 @@ from jmocap.constants import GRAVITY
 from jmocap.data.synthetic.character import Character
 from jmocap.data.synthetic.curves import _wrap
 from jmocap.data.synthetic.errors import GenerationError
-
-
-@dataclass(frozen=True)
-class SamplingConfig:
-    """The sampling controller of :func:`simulate_sampling` (``PhysicsConfig.controller =
-    "sampling"``). Cost weights are per frame, on errors in metres and radians."""
-
-    samples: int = 64
-    window: int = 3  # frames per control window
-    lookahead: int = 12  # frames simulated past the window to score a sample
-    pd_freq_hz: float = 8.0
-    sigma: float = 0.1  # rad, the offsets' standard deviation
-    carry: float = 0.7  # the next window's mean offset, times the chosen one
-    lookahead_gain: float = 0.5  # the offset kept over the lookahead
-    w_support: float = 10.0  # root - feet (horizontal), against the plan's
-    w_height: float = 10.0
-    w_rot: float = 2.0
-    w_pose: float = 5.0  # mean squared hinge error
-    w_vel: float = 1.0  # root linear velocity
-    w_pos: float = 0.3  # root world position
-    feedforward_margin_m: float = 0.005  # plan foot geoms this near the floor support it (feed-forward)
-    backtrack_tilt_deg: float = 25.0
-    backtrack_windows: int = 2
-    backtrack_factor: int = 4
-    max_backtracks: int = 8
-    threads: int = 2  # rollout threads
+from jmocap.data.synthetic.physics import (
+    PhysicsConfig,
+    _contact_forces,
+    _contact_jacobians,
+    _control,
+    _floor_contacts,
+    floor_split,
+    foot_geoms,
+    frames_from_substeps,
+    pyramid_edges,
+    reference_derivatives,
+    simulation_model,
+)
+from jmocap.model import scaled_spec
 
 
 def sampling_model(ch: Character, dt: float, contact_timeconst: float, freq_hz: float):
     """The tracking simulation's model (:func:`~jmocap.data.synthetic.physics.simulation_model`)
     with a position servo on every hinge; returns ``(model, kv)`` with ``kv`` (nv,) each dof's
     servo damping (0 on the root)."""
-    from jmocap.data.synthetic.physics import simulation_model
-    from jmocap.model import scaled_spec
-
     base = simulation_model(ch.mj, dt, contact_timeconst)
     d = mujoco.MjData(base)
     d.qpos[:] = ch.q_stand
@@ -119,14 +104,6 @@ def feedforward(ch: Character, mj, q_ref, qd_ref, qdd_ref, cfg) -> np.ndarray:
     """(T, nv) hinge torques (root entries 0) of the QP tracker at the plan's own states, its
     contacts those foot geoms within ``feedforward_margin_m`` of the floor: the torques that
     would realise the plan's accelerations where its contacts can balance them."""
-    from jmocap.data.synthetic.physics import (
-        _contact_jacobians,
-        _control,
-        _floor_contacts,
-        foot_geoms,
-        pyramid_edges,
-    )
-
     m = copy.deepcopy(mj)
     m.geom_margin[:] = cfg.sampling.feedforward_margin_m
     d = mujoco.MjData(m)
@@ -171,7 +148,7 @@ def _tilt(quat_a: np.ndarray, quat_b: np.ndarray) -> float:
     return float(np.arccos(np.clip(za @ zb, -1.0, 1.0)))
 
 
-def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg, lead: int = 0,
+def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: PhysicsConfig, lead: int = 0,
                       rng: np.random.Generator | None = None) -> dict:
     """Track a kinematic motion in MuJoCo C by sampling-based control (module docstring): joint
     servos, feed-forward hinge torques and contacts, never a root force. ``cfg`` is a
@@ -179,15 +156,6 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg, lead: i
     contact model, labels); ``lead`` as :func:`~jmocap.data.synthetic.physics.simulate_tracking`,
     whose return value this has (``residual`` all zeros; ``stats`` adds ``controller``,
     ``backtracks`` and ``samples_simulated``). Deterministic in ``rng`` (default seed 0)."""
-    from jmocap.data.synthetic.physics import (
-        _contact_forces,
-        _floor_contacts,
-        floor_split,
-        foot_geoms,
-        frames_from_substeps,
-        reference_derivatives,
-    )
-
     sc = cfg.sampling
     rng = np.random.default_rng(0) if rng is None else rng
     T = len(q_ref)
@@ -198,6 +166,8 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg, lead: i
     mj, kv = sampling_model(ch, dt, cfg.contact_timeconst, sc.pd_freq_hz)
     nv, nu = mj.nv, mj.nu
     hinge_q = np.array([mj.jnt_qposadr[mj.actuator_trnid[a, 0]] for a in range(nu)])
+    names = [mujoco.mj_id2name(mj, mujoco.mjtObj.mjOBJ_JOINT, int(mj.actuator_trnid[a, 0])) for a in range(nu)]
+    free = np.array([1.0 if any(p in nm for p in sc.sampled) else sc.other_sigma for nm in names])
     # one frame past the end, the last held, so that the last frame's forces have their substeps
     qr = np.concatenate([q_ref, q_ref[-1:]])
     Te = T + 1
@@ -241,7 +211,6 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg, lead: i
     d.qvel[:] = qd_ref[0]
     mujoco.mj_forward(mj, d)
     datas = [mujoco.MjData(mj) for _ in range(max(1, sc.threads))]
-    dk = mujoco.MjData(mj)
     nq = mj.nq
 
     def cost(states: np.ndarray, k: int) -> np.ndarray:
@@ -249,12 +218,7 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg, lead: i
         q = states[:, 1:1 + nq]
         v = states[:, 1 + nq:1 + nq + nv]
         ref = qr[k]
-        sup = np.zeros((len(q), 2))
-        for i, x in enumerate(q):
-            dk.qpos[:] = x
-            mujoco.mj_kinematics(mj, dk)
-            sup[i] = dk.site_xpos[sites, :2].mean(0)
-        rel = (q[:, :2] - sup) - (ref[:2] - support_ref[k])
+        rel = (q[:, :2] - _support_points(mj, q, sites)) - (ref[:2] - support_ref[k])
         dot = np.abs(q[:, 3:7] @ ref[3:7]) / np.linalg.norm(q[:, 3:7], axis=1)
         rot = 2 * np.arccos(np.clip(dot, 0.0, 1.0))
         return (sc.w_support * np.sum(rel**2, 1) + sc.w_height * (q[:, 2] - ref[2]) ** 2 + sc.w_rot * rot**2
@@ -299,6 +263,23 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg, lead: i
                         sub_foot[s, f] = fw[on].sum(0)
                         sub_moment[s, f] = np.cross(con.pos[on], fw[on]).sum(0)
 
+    def evaluate(offsets, prev, base_q, base_f, a, steps, k0, k2):
+        """Servo targets (m, steps + lookahead, nu) of the offsets (m, nu), blended from ``prev``
+        by ``a`` over the window's ``steps`` substeps, and their costs (m,) over frames
+        k0+1 .. k2, rolled out from the state in ``state``."""
+        m = len(offsets)
+        ctrl = np.repeat(base_q[None], m, axis=0)
+        ctrl[:, :steps] += prev[None, None, :] * (1 - a)[None, :, None] + offsets[:, None, :] * a[None, :, None]
+        ctrl[:, steps:] += sc.lookahead_gain * offsets[:, None, :]
+        controls = np.concatenate([ctrl, np.broadcast_to(base_f[None], (m,) + base_f.shape)], axis=-1)
+        states, _ = rollout.rollout(mj, datas, state[None], controls, control_spec=control_spec,
+                                    nstep=(k2 - k0) * n, initial_warmstart=d.qacc_warmstart[None].copy())
+        total = np.zeros(m)
+        for j, k in enumerate(range(k0 + 1, k2 + 1)):
+            c = cost(states[:, (j + 1) * n - 1], k)
+            total += np.where(np.isfinite(c), c, np.inf)
+        return ctrl, total
+
     snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     prev = np.zeros(nu)
     k0, backtracks, retry_until, simulated = 0, 0, -1, 0
@@ -308,24 +289,28 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg, lead: i
         snapshots[k0] = (keep, prev.copy())
         k1 = min(k0 + sc.window, Te - 1)
         k2 = min(k1 + sc.lookahead, Te - 1)
-        N = sc.samples * (sc.backtrack_factor if k0 < retry_until else 1)
+        retry = k0 < retry_until
+        N = sc.samples * (sc.backtrack_factor if retry else 1)
+        sigma = sc.sigma * (sc.backtrack_sigma if retry else 1.0)
         base_q, base_f = targets(k0, k2)
         steps = (k1 - k0) * n
-        off = sc.carry * prev[None] + rng.normal(size=(N, nu)) * sc.sigma
+        off = sc.carry * prev[None] + rng.normal(size=(N, nu)) * (sigma * free)
         off[0] = sc.carry * prev
-        ctrl = np.repeat(base_q[None], N, axis=0)
-        ctrl[:, :steps] += off[:, None, :]
-        ctrl[:, steps:] += sc.lookahead_gain * off[:, None, :]
-        controls = np.concatenate([ctrl, np.broadcast_to(base_f[None], (N,) + base_f.shape)], axis=-1)
+        # from the offset in force (the last window's) to the sample's
+        a = np.minimum((np.arange(steps) + 1.0) / max(sc.ramp_frames * n, 1), 1.0)
         mujoco.mj_getState(mj, d, state, full_spec)
-        states, _ = rollout.rollout(mj, datas, state[None], controls, control_spec=control_spec,
-                                    nstep=(k2 - k0) * n, initial_warmstart=d.qacc_warmstart[None].copy())
+
+        ctrl, total = evaluate(off, prev, base_q, base_f, a, steps, k0, k2)
         simulated += N * (k2 - k0) * n
-        total = np.zeros(N)
-        for j, k in enumerate(range(k0 + 1, k2 + 1)):
-            c = cost(states[:, (j + 1) * n - 1], k)
-            total += np.where(np.isfinite(c), c, np.inf)
         best = int(np.argmin(total))
+        if sc.elite > 1:
+            # the mean of the best few samples: the noise of any one draw averages out (smoother
+            # servo targets); taken when it scores at least as well as the best draw
+            mean = off[np.argsort(total)[:sc.elite]].mean(0, keepdims=True)
+            ctrl_m, total_m = evaluate(mean, prev, base_q, base_f, a, steps, k0, k2)
+            simulated += (k2 - k0) * n
+            if total_m[0] <= total[best]:
+                off, ctrl, best = mean, ctrl_m, 0
         prev = off[best]
         commit(k0, k1, ctrl[best, :steps], base_f[:steps])
         bad = (not np.all(np.isfinite(d.qpos)) or d.qpos[2] < z_fall
