@@ -48,7 +48,7 @@ class SamplingConfig:
     # the hinges sampled with the full ``sigma`` (names containing one of these: the legs and
     # the trunk, which balance the body); the others (arms, head) with ``other_sigma`` x sigma
     sampled: tuple[str, ...] = ("hip", "knee", "ankle", "foot", "spine")
-    other_sigma: float = 1.0
+    other_sigma: float = 0.3
     # offsets blend linearly from the one in force to the sample's over the window's first
     # ``ramp_frames`` frames (continuous servo targets; 0: switched at the window's start)
     ramp_frames: int = 1
