@@ -356,6 +356,34 @@ def foot_geoms(ch: Character, mj: mujoco.MjModel):
     return floor, geom_foot, np.array(mj.geom_bodyid)
 
 
+def substep_records(S: int, nv: int) -> dict:
+    """Zeroed per-substep records of a simulation (:func:`frames_from_substeps`'s ``sub``):
+    ``tau`` (S, nv), ``grf`` (S, 4, 3), ``foot`` (S, 2, 3), ``moment`` (S, 2, 3), ``mid`` (S, 2, 3)
+    and ``rescue`` (S,) bool."""
+    return dict(tau=np.zeros((S, nv)), grf=np.zeros((S, 4, 3)), foot=np.zeros((S, 2, 3)),
+                moment=np.zeros((S, 2, 3)), mid=np.zeros((S, 2, 3)), rescue=np.zeros(S, bool))
+
+
+def record_foot_forces(mj, d, con: _Contacts, sites_xpos: np.ndarray, sub: dict, s: int, floor_m: float) -> None:
+    """Substep ``s``'s foot forces into ``sub`` (:func:`substep_records`), after ``mj_step2``: each
+    foot's contact forces split between its heel and toe sites on the floor (:func:`floor_split`;
+    ``sites_xpos`` (4, 3) the sites at ``mj_step1``), its total force, its moment about the world
+    origin and its heel-toe midpoint. A foot without contacts gets zeros."""
+    fw = _contact_forces(mj, d, con)
+    for f in range(2):
+        on = con.foot == f
+        heel, toe = sites_xpos[2 * f], sites_xpos[2 * f + 1]
+        sub["mid"][s, f] = (heel + toe) / 2
+        if on.any():
+            sub["grf"][s, 2 * f: 2 * f + 2] = floor_split(con.pos[on], fw[on], heel, toe, floor_m)
+            sub["foot"][s, f] = fw[on].sum(0)
+            sub["moment"][s, f] = np.cross(con.pos[on], fw[on]).sum(0)
+        else:
+            sub["grf"][s, 2 * f: 2 * f + 2] = 0.0
+            sub["foot"][s, f] = 0.0
+            sub["moment"][s, f] = 0.0
+
+
 def _rescue(on: bool, pos_err: float, rot_err: float, cfg: PhysicsConfig) -> bool:
     """Hysteresis of the rescue residual: on when the root is more than ``rescue_pos_m`` or
     ``rescue_rot_deg`` off the reference, off again when below ``rescue_off`` times both."""
@@ -415,13 +443,7 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     mujoco.mj_forward(mj, d)
     q_out = np.zeros((T, mj.nq))
     qd_out = np.zeros((T, nv))
-    S = T * n
-    sub_tau = np.zeros((S, nv))
-    sub_grf = np.zeros((S, 4, 3))
-    sub_foot = np.zeros((S, 2, 3))
-    sub_moment = np.zeros((S, 2, 3))
-    sub_mid = np.zeros((S, 2, 3))
-    rescue_sub = np.zeros(S, bool)
+    sub = substep_records(T * n, nv)
     site_z = np.zeros((T, 4))
     root_err = np.zeros((T, 2))
     nonfoot = 0
@@ -447,7 +469,7 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
             err = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e_rot))
             if i == 0:
                 root_err[k] = err
-            rescue = rescue_sub[s] = _rescue(rescue, *err, cfg)
+            rescue = sub["rescue"][s] = _rescue(rescue, *err, cfg)
             a_des = qddr + kp * e + kd * (qdr - d.qvel)
             con, other = _floor_contacts(d, floor, geom_foot, geom_body)
             nonfoot += other
@@ -459,31 +481,20 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
             tau = _control(M, d.qfrc_bias, A, Jc, Jc @ d.qvel, a_des, sw, cfg, mass, rescue)
             d.qfrc_applied[:] = tau
             mujoco.mj_step2(mj, d)
-            sub_tau[s] = tau
+            sub["tau"][s] = tau
             # the step's contact forces (computed in mj_step2 for the contacts of mj_step1)
-            fw = _contact_forces(mj, d, con)
-            for f in range(2):
-                on = con.foot == f
-                heel, toe = sp[2 * f], sp[2 * f + 1]
-                sub_mid[s, f] = (heel + toe) / 2
-                if on.any():
-                    sub_grf[s, 2 * f: 2 * f + 2] = floor_split(con.pos[on], fw[on], heel, toe,
-                                                               cfg.site_floor_m)
-                    sub_foot[s, f] = fw[on].sum(0)
-                    sub_moment[s, f] = np.cross(con.pos[on], fw[on]).sum(0)
+            record_foot_forces(mj, d, con, sp, sub, s, cfg.site_floor_m)
         up = d.xmat[ch.pelvis].reshape(3, 3)[2, 2]
         if not np.all(np.isfinite(d.qpos)) or d.qpos[2] < z_fall or up < cos_tilt:
             raise GenerationError(f"the simulated character fell at frame {k}")
-    return frames_from_substeps(ch, q_ref, q_out, qd_out, fps, n, lead, cfg, weight, dict(
-        tau=sub_tau, grf=sub_grf, foot=sub_foot, moment=sub_moment, mid=sub_mid, rescue=rescue_sub),
-        site_z, root_err, nonfoot)
+    return frames_from_substeps(ch, q_ref, q_out, qd_out, fps, n, lead, cfg, weight, sub, site_z, root_err, nonfoot)
 
 
 def frames_from_substeps(ch: Character, q_ref, q_out, qd_out, fps: float, n: int, lead: int, cfg: PhysicsConfig,
                          weight: float, sub: dict, site_z, root_err, nonfoot: int) -> dict:
-    """The frame values and statistics of a simulation from its substep records (``sub``: ``tau``
-    (S, nv) applied generalised forces, ``grf`` (S, 4, 3), ``foot`` (S, 2, 3), ``moment`` (S, 2, 3),
-    ``mid`` (S, 2, 3), ``rescue`` (S,) bool), the frame states ``q_out`` / ``qd_out`` and the
+    """The frame values and statistics of a simulation from its substep records (``sub``,
+    :func:`substep_records`: ``tau`` the applied generalised forces, the foot forces of
+    :func:`record_foot_forces`, ``rescue`` the substeps with a root residual), the frame states ``q_out`` / ``qd_out`` and the
     per-frame ``site_z`` (T, 4) and ``root_err`` (T, 2); the first ``lead`` frames are dropped
     (:func:`simulate_tracking`'s return value)."""
     T = len(q_ref)

@@ -47,16 +47,16 @@ from jmocap.data.synthetic.curves import _wrap
 from jmocap.data.synthetic.errors import GenerationError
 from jmocap.data.synthetic.physics import (
     PhysicsConfig,
-    _contact_forces,
     _contact_jacobians,
     _control,
     _floor_contacts,
-    floor_split,
     foot_geoms,
     frames_from_substeps,
     pyramid_edges,
+    record_foot_forces,
     reference_derivatives,
     simulation_model,
+    substep_records,
 )
 from jmocap.model import scaled_spec
 
@@ -182,12 +182,7 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     z_fall = cfg.fall_height * ch.z_stand
     cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg))
 
-    S = Te * n
-    sub_tau = np.zeros((S, nv))
-    sub_grf = np.zeros((S, 4, 3))
-    sub_foot = np.zeros((S, 2, 3))
-    sub_moment = np.zeros((S, 2, 3))
-    sub_mid = np.zeros((S, 2, 3))
+    sub = substep_records(Te * n, nv)
     q_out = np.zeros((Te, mj.nq))
     qd_out = np.zeros((Te, nv))
     site_z = np.zeros((Te, 4))
@@ -249,19 +244,8 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
                 # the generalised force the servos and the feed-forward applied: implicitfast
                 # integrates the servos' damping implicitly, so its effective force is taken at
                 # the new velocity (qacc the step's acceleration)
-                sub_tau[s] = d.qfrc_actuator + d.qfrc_applied - dt * kv * d.qacc
-                fw = _contact_forces(mj, d, con)
-                for f in range(2):
-                    on = con.foot == f
-                    heel, toe = sp[2 * f], sp[2 * f + 1]
-                    sub_mid[s, f] = (heel + toe) / 2
-                    sub_grf[s, 2 * f: 2 * f + 2] = 0.0
-                    sub_foot[s, f] = 0.0
-                    sub_moment[s, f] = 0.0
-                    if on.any():
-                        sub_grf[s, 2 * f: 2 * f + 2] = floor_split(con.pos[on], fw[on], heel, toe, cfg.site_floor_m)
-                        sub_foot[s, f] = fw[on].sum(0)
-                        sub_moment[s, f] = np.cross(con.pos[on], fw[on]).sum(0)
+                sub["tau"][s] = d.qfrc_actuator + d.qfrc_applied - dt * kv * d.qacc
+                record_foot_forces(mj, d, con, sp, sub, s, cfg.site_floor_m)
 
     def evaluate(offsets, prev, base_q, base_f, a, steps, k0, k2):
         """Servo targets (m, steps + lookahead, nu) of the offsets (m, nu), blended from ``prev``
@@ -330,10 +314,8 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
             continue
         k0 = k1
     q_out[Te - 1], qd_out[Te - 1] = d.qpos, d.qvel
-    sim = frames_from_substeps(
-        ch, q_ref, q_out[:T], qd_out[:T], fps, n, lead, cfg, weight,
-        dict(tau=sub_tau[:T * n], grf=sub_grf[:T * n], foot=sub_foot[:T * n], moment=sub_moment[:T * n],
-             mid=sub_mid[:T * n], rescue=np.zeros(T * n, bool)),
-        site_z[:T], root_err[:T], int(nonfoot[:T].sum()))
+    sim = frames_from_substeps(ch, q_ref, q_out[:T], qd_out[:T], fps, n, lead, cfg, weight,
+                               {k: v[:T * n] for k, v in sub.items()}, site_z[:T], root_err[:T],
+                               int(nonfoot[:T].sum()))
     sim["stats"].update(controller="sampling", backtracks=int(backtracks), samples_simulated=int(simulated))
     return sim
