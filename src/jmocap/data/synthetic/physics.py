@@ -41,8 +41,9 @@ class SamplingConfig:
     (``PhysicsConfig.controller = "sampling"``). Cost weights are per frame, on errors in metres and radians."""
 
     samples: int = 64
-    window: int = 3  # frames per control window
-    lookahead: int = 12  # frames simulated past the window to score a sample
+    # durations in seconds, rounded to whole frames at the clip's rate (3, 12 and 1 frames at 30 fps)
+    window_s: float = 0.1  # one control window
+    lookahead_s: float = 0.4  # simulated past the window to score a sample
     pd_freq_hz: float = 8.0
     sigma: float = 0.1  # rad, the offsets' standard deviation
     # the hinges sampled with the full ``sigma`` (names containing one of these: the legs and
@@ -50,9 +51,13 @@ class SamplingConfig:
     sampled: tuple[str, ...] = ("hip", "knee", "ankle", "foot", "spine")
     other_sigma: float = 0.3
     # offsets blend linearly from the one in force to the sample's over the window's first
-    # ``ramp_frames`` frames (continuous servo targets; 0: switched at the window's start)
-    ramp_frames: int = 1
+    # ``ramp_s`` (continuous servo targets; 0: switched at the window's start)
+    ramp_s: float = 1 / 30
     carry: float = 0.7  # the next window's mean offset, times the chosen one
+    # sample i is drawn with sigma x sigma_scales[i % len]: small changes to choose from as well
+    # as large ones
+    sigma_scales: tuple[float, ...] = (1.0,)
+    w_change: float = 0.0  # cost of the offset's change, per mean squared radian over the hinges
     lookahead_gain: float = 0.5  # the offset kept over the lookahead
     elite: int = 1  # > 1: the mean of this many best samples is tried too (measured, not taken: docs/data.md)
     w_support: float = 10.0  # root - feet (horizontal), against the plan's

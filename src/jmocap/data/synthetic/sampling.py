@@ -14,10 +14,10 @@ sampling control (Huang et al. 2022, Sec. 3.1):
   inertia diagonal) towards the plan's hinge angles plus a per-window offset, and by a
   feed-forward hinge torque: the QP tracker's torques at the plan's own state, whose root rows
   the plan's contacts balance. The root is never actuated;
-* per control window (``window`` frames) ``samples`` offsets are drawn (Gaussian, standard
+* per control window (``window_s`` seconds, in whole frames) ``samples`` offsets are drawn (Gaussian, standard
   deviation ``sigma`` rad, around ``carry`` times the previous window's offset), blended from
-  the offset in force over the window's first ``ramp_frames`` frames, each is rolled out by ``mujoco.rollout`` (MuJoCo C, multi-threaded) over the window and a ``lookahead`` of
-  further frames (the offset then decayed to ``lookahead_gain`` of itself), and scored against
+  the offset in force over the window's first ``ramp_s``, each is rolled out by ``mujoco.rollout`` (MuJoCo C, multi-threaded) over the window and a ``lookahead_s`` of
+  further time (the offset then decayed to ``lookahead_gain`` of itself), and scored against
   the plan frame by frame: the root's horizontal position *relative to the feet* (balance
   over the support, not the plan's world path: a walk may lag its plan), its height, its
   orientation, the hinge angles, the root velocity and, weakly, the world position;
@@ -182,6 +182,9 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     z_fall = cfg.fall_height * ch.z_stand
     cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg))
 
+    window = max(1, round(sc.window_s * fps))
+    lookahead = max(0, round(sc.lookahead_s * fps))
+    ramp = max(0, round(sc.ramp_s * fps))
     sub = substep_records(Te * n, nv)
     q_out = np.zeros((Te, mj.nq))
     qd_out = np.zeros((Te, nv))
@@ -258,7 +261,8 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         controls = np.concatenate([ctrl, np.broadcast_to(base_f[None], (m,) + base_f.shape)], axis=-1)
         states, _ = rollout.rollout(mj, datas, state[None], controls, control_spec=control_spec,
                                     nstep=(k2 - k0) * n, initial_warmstart=d.qacc_warmstart[None].copy())
-        total = np.zeros(m)
+        # the offset's change from the one in force: each change jerks the servos' targets
+        total = sc.w_change * np.mean((offsets - prev[None]) ** 2, axis=1)
         for j, k in enumerate(range(k0 + 1, k2 + 1)):
             c = cost(states[:, (j + 1) * n - 1], k)
             total += np.where(np.isfinite(c), c, np.inf)
@@ -271,17 +275,18 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         keep = np.zeros(mujoco.mj_stateSize(mj, keep_spec))
         mujoco.mj_getState(mj, d, keep, keep_spec)
         snapshots[k0] = (keep, prev.copy())
-        k1 = min(k0 + sc.window, Te - 1)
-        k2 = min(k1 + sc.lookahead, Te - 1)
+        k1 = min(k0 + window, Te - 1)
+        k2 = min(k1 + lookahead, Te - 1)
         retry = k0 < retry_until
         N = sc.samples * (sc.backtrack_factor if retry else 1)
         sigma = sc.sigma * (sc.backtrack_sigma if retry else 1.0)
         base_q, base_f = targets(k0, k2)
         steps = (k1 - k0) * n
-        off = sc.carry * prev[None] + rng.normal(size=(N, nu)) * (sigma * free)
+        scale = np.asarray(sc.sigma_scales, float)[np.arange(N) % len(sc.sigma_scales)]
+        off = sc.carry * prev[None] + rng.normal(size=(N, nu)) * (sigma * free) * scale[:, None]
         off[0] = sc.carry * prev
         # from the offset in force (the last window's) to the sample's
-        a = np.minimum((np.arange(steps) + 1.0) / max(sc.ramp_frames * n, 1), 1.0)
+        a = np.minimum((np.arange(steps) + 1.0) / max(ramp * n, 1), 1.0)
         mujoco.mj_getState(mj, d, state, full_spec)
 
         ctrl, total = evaluate(off, prev, base_q, base_f, a, steps, k0, k2)
@@ -305,11 +310,11 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
             if backtracks > sc.max_backtracks:
                 raise GenerationError(f"the sampling controller lost balance at frame {k1} after "
                                       f"{sc.max_backtracks} backtracks")
-            back = max(0, k0 - (sc.backtrack_windows - 1) * sc.window)
+            back = max(0, k0 - (sc.backtrack_windows - 1) * window)
             back = max(k for k in snapshots if k <= back)
             keep, prev = snapshots[back]
             mujoco.mj_setState(mj, d, keep, keep_spec)
-            retry_until = k1 + sc.window
+            retry_until = k1 + window
             k0 = back
             continue
         k0 = k1
