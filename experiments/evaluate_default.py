@@ -6,8 +6,10 @@
                                                                           # smoke run of the harness
 
 1. Makes the held-out archive if it is missing or short, exactly as
-   ``jmocap data synth --out data/heldout --clips N --seed 123 --physics`` (synthetic clips
-   tracked in MuJoCo simulation: ground-truth torques and contact forces). The archive resumes,
+   ``jmocap data synth --out data/heldout --clips N --seed 123 --physics --controller sampling``
+   (synthetic clips tracked in MuJoCo simulation by the sampling controller: ground-truth torques
+   and contact forces with no root force on any frame, docs/data.md; the QP tracker's archive
+   until stop 45). The archive resumes,
    so ``--max-clips K`` generates only its first K clips, a prefix of the full archive.
 2. Runs :func:`jmocap.evaluate.evaluate` over it with every method (or ``--methods``) and writes
    ``out/evaluation/metrics.{md,csv,json}``.
@@ -33,6 +35,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 ARCHIVE_SEED = 123
+ARCHIVE_CONTROLLER = "sampling"  # the ground truth moved by contacts alone (issue 23; "qp" until stop 45)
 BEGIN = "<!-- results:begin -->"
 END = "<!-- results:end -->"
 
@@ -45,7 +48,7 @@ def ensure_archive(path: Path, clips: int, workers: int) -> None:
     have = sum(1 for line in manifest.read_text().splitlines() if line.strip()) if manifest.exists() else 0
     if have < clips:
         cmd = ["data", "synth", "--out", str(path), "--clips", str(clips), "--seed", str(ARCHIVE_SEED),
-               "--physics", "--workers", str(workers)]
+               "--physics", "--controller", ARCHIVE_CONTROLLER, "--workers", str(workers)]
         print("+ jmocap " + " ".join(cmd), flush=True)
         if jmocap(cmd) != 0:
             sys.exit(f"could not generate the held-out archive {path}")
@@ -97,7 +100,8 @@ def results_section(result, *, smoke: bool, source: str, command: str, wall_s: f
         ]
     lines += [
         f"- Archive: `{Path(result.archive).relative_to(ROOT) if Path(result.archive).is_relative_to(ROOT) else result.archive}` "
-        f"(`jmocap data synth --seed {ARCHIVE_SEED} --physics`), {len(result.clips)} clips, "
+        f"(`jmocap data synth --seed {ARCHIVE_SEED} --physics --controller {ARCHIVE_CONTROLLER}`), "
+        f"{len(result.clips)} clips, "
         f"{result.info['frames']} frames; kinds: " + ", ".join(f"{k} {n}" for k, n in sorted(kinds.items())) + ".",
         f"- Parameters: {source}.",
         f"- Command: `{command}` ({wall_s / 60:.1f} min).",
