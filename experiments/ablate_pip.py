@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import time
 
@@ -43,7 +44,9 @@ def parse_set(items, config) -> dict:
         if k not in fields:
             raise SystemExit(f"unknown field {k!r}")
         cur = getattr(config, k)
-        if isinstance(cur, str):
+        if isinstance(cur, tuple):
+            out[k] = tuple(json.loads(v))  # a JSON list, e.g. sigma_scales=[0.25,0.5,1.0]
+        elif isinstance(cur, str):
             out[k] = v
         elif isinstance(cur, bool):
             out[k] = v.lower() in ("1", "true", "yes")

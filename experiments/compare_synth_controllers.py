@@ -8,16 +8,16 @@ max), root orientation and hinge errors (``meta["physics"]["tracking_*"]``), gro
 (``jmocap.metrics.jitter`` of ``gt_keypoints3d``), attempts redrawn and backtracks.
 
     python experiments/compare_synth_controllers.py --kinds walk,run --seeds 0-5 \
-        --controller sampling --set sigma=0.1 --set other_sigma=0.3
+        --controller sampling --set sigma=0.1 other_sigma=0.3
 
-``--set`` changes a ``SamplingConfig`` field (``--qp-set`` a ``PhysicsConfig`` one). Deterministic
+``--set`` changes ``SamplingConfig`` fields (``--qp-set`` ``PhysicsConfig`` ones), parsed as
+``experiments/ablate_pip.py``'s ``parse_set`` does (a tuple field takes a JSON list). Deterministic
 in the seeds (the rollouts are: tests/test_synthetic_physics.py); wall time is the machine's.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 
@@ -26,25 +26,6 @@ import numpy as np
 from jmocap.data.synthetic import SynthConfig, generate_clip
 from jmocap.data.synthetic.physics import PhysicsConfig, SamplingConfig
 from jmocap.metrics import jitter
-
-
-def _value(text: str):
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
-
-
-def _sets(items, cls):
-    out = {}
-    names = {f.name: f for f in dataclasses.fields(cls)}
-    for item in items or []:
-        key, _, val = item.partition("=")
-        if key not in names:
-            raise SystemExit(f"unknown {cls.__name__} field {key!r}")
-        v = _value(val)
-        out[key] = tuple(v) if isinstance(v, list) else v
-    return out
 
 
 def _seeds(text: str) -> list[int]:
@@ -84,13 +65,15 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0-5", help="e.g. 0-5 or 0,3,7")
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--controller", default="sampling", choices=("qp", "sampling"))
-    ap.add_argument("--set", action="append", help="SamplingConfig field=value (JSON value)")
-    ap.add_argument("--qp-set", action="append", help="PhysicsConfig field=value (JSON value)")
+    ap.add_argument("--set", nargs="*", default=[], help="SamplingConfig fields, name=value")
+    ap.add_argument("--qp-set", nargs="*", default=[], help="PhysicsConfig fields, name=value")
     ap.add_argument("--label", default="")
     ap.add_argument("--json", help="append the rows here as JSON lines")
     args = ap.parse_args(argv)
-    sampling = _sets(args.set, SamplingConfig)
-    physics = _sets(args.qp_set, PhysicsConfig)
+    from ablate_pip import parse_set
+
+    sampling = parse_set(args.set, SamplingConfig())
+    physics = parse_set(args.qp_set, PhysicsConfig())
     print("| controller | kind | clips | s / clip | frames with residual | residual force (% BW) | root off the plan, "
           "mean / max (mm) | root orientation (deg) | hinges (deg) | GT jitter (km/s^3) | attempts redrawn | backtracks |")
     for kind in args.kinds.split(","):
