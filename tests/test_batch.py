@@ -312,16 +312,27 @@ def test_results_follow_the_schema(first_run, clips, params):
         np.testing.assert_allclose(r["keypoints2d"], clip.keypoints, atol=1e-4)  # OpenPose JSON: 1e-4 px
         np.testing.assert_allclose(r["intrinsics"], clip.intrinsics)
         np.testing.assert_array_equal(r["image_size"], clip.image_size)
-        ext = clip.extrinsics if clip.extrinsics is not None else default_extrinsics()
-        np.testing.assert_allclose(r["extrinsics"], ext, atol=1e-6)
+        source = str(r["extrinsics_source"])
+        if clip.extrinsics is not None:
+            assert source == "input"
+            np.testing.assert_allclose(r["extrinsics"], clip.extrinsics, atol=1e-6)
+        elif source == "default":  # the floor estimate of the untrained TPNet was not usable
+            np.testing.assert_allclose(r["extrinsics"], default_extrinsics(), atol=1e-6)
+        else:  # estimated (jmocap.methods.floor): a camera above the floor
+            assert source == "estimated"
+            R, t = r["extrinsics"][:3, :3], r["extrinsics"][:3, 3]
+            np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-6)
+            assert (-R.T @ t)[2] > 0
         want_h = DEFAULT_HEIGHT_M if clip.height_m is None else clip.height_m  # (OpenPose: from its sidecar)
         assert float(r["height_m"]) == pytest.approx(want_h)
         assert float(r["fps"]) == clip.fps
         assert str(r["config"]) == config_json(SMALL)
         assert str(r["params_sha256"]) == params_sha256(params)
         assert len(str(r["model_sha256"])) == 64 and str(r["version"])
-    assumed = json.loads(str(np.load(out / "bare.npz")["assumed"]))
-    assert {"extrinsics", "height_m"} <= set(assumed)
+    bare = np.load(out / "bare.npz")
+    assumed = json.loads(str(bare["assumed"]))
+    assert "height_m" in assumed
+    assert ("extrinsics" in assumed) == (str(bare["extrinsics_source"]) == "default")
     # where each height came from (jmocap.subject): the clips' own (OpenPose: its sidecar's);
     # 'bare' has none, and no camera placement to estimate one from
     m = read_manifest(out)
@@ -533,7 +544,8 @@ def test_warnings_are_recorded_in_manifest_and_result(first_run):
     m = read_manifest(out)
     w = m["undetected_frames"]["warnings"]
     assert any("frames 3-5" in x for x in w), w  # the three undetected frames, as a range
-    assert any("extrinsics" in x for x in m["bare"]["warnings"])  # the assumed camera
+    if m["bare"]["extrinsics_source"] == "default":
+        assert any("extrinsics" in x for x in m["bare"]["warnings"])  # the assumed camera
     res = load_result(out / m["undetected_frames"]["file"])
     assert res["warnings"] == w
     assert summary["warnings"] >= 2

@@ -51,7 +51,7 @@ from jmocap.data.sources import SUMMARY, Source, open_sources
 from jmocap.data.validate import check_reconstructable
 from jmocap.io import atomic_write, remove_stale_temporaries
 from jmocap.model import Model
-from jmocap.pipeline import Reconstructor, subject_height, subject_model
+from jmocap.pipeline import FloorEstimator, Reconstructor, subject_height, subject_model
 from jmocap.results import (
     RESULT_FORMAT,
     ReconstructionError,
@@ -119,6 +119,10 @@ class BatchOptions:
     # jmocap.subject.resolve_subject
     height_m: float | str = "auto"
     mass_kg: float | None = None  # every clip's mass (None: the clip's own, else nominal)
+    # the camera of a clip without extrinsics: "estimate" (the floor seen from the person,
+    # jmocap.methods.floor; the default camera where that is not usable) or "default"
+    # (jmocap.camera.default_extrinsics); jmocap.pipeline.FloorEstimator
+    camera: str = "estimate"
 
 
 @dataclass
@@ -183,11 +187,16 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
         settings["height_m"] = options.height_m
     if options.mass_kg is not None:
         settings["mass_kg"] = options.mass_kg
+    if options.camera != "estimate":
+        settings["camera"] = options.camera
+    if options.camera not in ("estimate", "default"):
+        raise ValueError(f"camera must be 'estimate' or 'default', got {options.camera!r}")
     write_bvh = _bvh_writer() if options.bvh else None
     engine = Reconstructor(
         params, config, method=method, chunk=options.chunk, bucket=options.bucket, batch=options.batch,
         devices=devices,
     )
+    floor = FloorEstimator(engine.params, config) if options.camera == "estimate" else None
     run = {"ok": 0, "failed": 0, "frames": 0}
     interrupted: BaseException | None = None
     with contextlib.ExitStack() as stack:
@@ -239,8 +248,12 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
                     forces_estimated=engine.method.estimates_forces, identity=identity, source=src.where,
                     assumed=assumed_fields(clip), warnings=it.warnings,
                     height_source=clip.meta.get("height_source"),
+                    extrinsics_source=clip.meta.get("extrinsics_source"),
                 )
-                extra = {"height_source": clip.meta.get("height_source")}
+                extra = {"height_source": clip.meta.get("height_source"),
+                         "extrinsics_source": clip.meta.get("extrinsics_source")}
+                if clip.meta.get("camera_estimate"):
+                    extra["camera_estimate"] = clip.meta["camera_estimate"]
                 if clip.meta.get("layout_conversion"):
                     extra["layout_conversion"] = clip.meta["layout_conversion"]
                 if clip.meta.get("height_estimate"):
@@ -287,7 +300,8 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
         capacity = options.pool or 16 * engine.group_size
         try:
             with _signals_raise():
-                for src, got, seconds in _read_ahead(todo, config, depth=engine.group_size, options=options):
+                for src, got, seconds in _read_ahead(todo, config, depth=engine.group_size, options=options,
+                                                       floor=floor):
                     if isinstance(got, BaseException):
                         submit(record_failure_safely, src, got, seconds)
                         continue
@@ -404,15 +418,22 @@ def _signals_raise():
         signal.signal(signal.SIGTERM, old)
 
 
-def _read_ahead(sources: Sequence[Source], config, depth: int, options: BatchOptions = BatchOptions()):  # noqa: B008
+def _read_ahead(sources: Sequence[Source], config, depth: int, options: BatchOptions = BatchOptions(),  # noqa: B008
+                floor: FloorEstimator | None = None):
     """``(source, clip or the exception that reading it raised, seconds)`` in order, read
     ``depth`` clips ahead on a thread (file reads and decompression overlap the compute); each
-    clip with its subject resolved (:func:`jmocap.subject.resolve_subject`) and checked."""
+    clip with its subject resolved (:func:`jmocap.subject.resolve_subject`), its camera (the
+    floor estimated where it has no extrinsics, ``floor``; else the default camera) and checked."""
 
     def load(src: Source):
         t = time.perf_counter()
         try:
             clip, warnings = adapt_layout(resolve_subject(src.load(), options.height_m, options.mass_kg), config)
+            if floor is not None:
+                clip = floor.resolve(clip)
+            else:
+                clip = clip.replace(meta={**clip.meta, "extrinsics_source":
+                                          "input" if clip.extrinsics is not None else "default"})
             got = (clip, warnings + check_clip(clip, config, src.where))
         except Exception as e:  # noqa: BLE001 - recorded as the clip's failure (RecursionError too)
             got = e

@@ -456,6 +456,10 @@ def _eval(p: argparse.ArgumentParser) -> None:
                    help="the height the estimates use: the clips' own (default), estimated from the 2D "
                         "evidence as for clips without one (jmocap.subject), or the nominal 1.75 m character; "
                         "the ground truth always uses the clips' own")
+    p.add_argument("--camera", choices=("given", "estimate", "default"), default="given",
+                   help="the extrinsics the estimates use: the clips' own (default), withheld and estimated "
+                        "from the 2D evidence as for an uncalibrated video (jmocap.methods.floor), or withheld "
+                        "and replaced by the default camera; estimates are scored in the true world")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)
 
@@ -557,6 +561,11 @@ def _reconstruct(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mass-kg", type=_mass_arg, default=None, metavar="M",
                    help="the subject's mass for every clip (default: the clip's or its sidecar's mass_kg, "
                         "else the character's nominal mass)")
+    p.add_argument("--camera", choices=("estimate", "default"), default="estimate",
+                   help="the camera of clips without extrinsics (no sidecar 'extrinsics'): 'estimate' "
+                        "(default): its tilt and height above the floor estimated from the person "
+                        "(jmocap.methods.floor), else the default camera; 'default': a level camera 1 m "
+                        "above the floor. The result's extrinsics_source says which")
     p.add_argument("--bvh", action="store_true", help="also write <name>.bvh per clip")
     p.add_argument("--max-clips", type=int, metavar="N", help="process at most N clips this run")
     p.add_argument("--cache-dir", default=_xla_cache_dir(), metavar="DIR",
@@ -646,7 +655,7 @@ def run_reconstruct(args) -> int:
         options = BatchOptions(
             chunk=args.chunk, bucket=args.bucket, batch=args.batch, image_size=args.image_size,
             bvh=args.bvh, max_clips=args.max_clips, height_m=getattr(args, "height_m", "auto"),
-            mass_kg=getattr(args, "mass_kg", None),
+            mass_kg=getattr(args, "mass_kg", None), camera=getattr(args, "camera", "estimate"),
         )
         summary = reconstruct_archive(
             args.input, args.output, params, config, options, method=method,

@@ -89,6 +89,13 @@ class EvalConfig:
     # (estimated from the 2D evidence, jmocap.subject, as for a clip without one) or "nominal"
     # (the 1.75 m / 73 kg character); the ground truth always uses the clip's own subject
     subject_height: str = "given"
+    # the camera the estimates are made with: "given" (the clip's true extrinsics), "estimate"
+    # (withheld: the floor estimated from the 2D evidence, jmocap.methods.floor, as for an
+    # uncalibrated video; the default camera where the estimate is not usable) or "default" (withheld:
+    # the documented default camera, jmocap.camera.default_extrinsics). Estimates made with a
+    # withheld camera are moved into the true world through the camera before scoring (the same
+    # image, so the same camera-frame motion): every metric then also scores the floor's estimate.
+    camera: str = "given"
 
 
 @dataclass
@@ -151,6 +158,8 @@ class _Batch:
     models: Model  # batched estimate models
     gt: list[dict[str, np.ndarray]]  # per real clip: (L, ...) ground truth, incl. derived quantities
     half_width: np.ndarray  # (B,) sole half-width of the estimate models
+    # (B, 4, 4) the clips' true extrinsics where the estimates used others (EvalConfig.camera)
+    true_extrinsics: np.ndarray | None = None
 
 
 @functools.lru_cache(maxsize=8)
@@ -212,6 +221,46 @@ def _evaluate_clip(clip: Clip, pred: dict, gt: dict, length: int, pred_mass: flo
     return {**out, **{f"diag_{k}": float(v) for k, v in diagnostics.items()}}
 
 
+@functools.lru_cache(maxsize=4)
+def _batched_floor() -> Callable:
+    from jmocap.methods import floor as F
+
+    return jax.jit(jax.vmap(F.estimate_floor, in_axes=(None, 0, 0, None)))
+
+
+def _withhold_camera(batch: _Batch, how: str, params, base: dict) -> dict[str, dict[str, float]]:
+    """Replace the batch's extrinsics by the default camera or the floor estimated from its 2D
+    keypoints (:attr:`EvalConfig.camera`); returns per clip what the estimate got."""
+    from jmocap.camera import default_extrinsics
+
+    true = np.asarray(batch.inputs.extrinsics)
+    B = true.shape[0]
+    default = np.broadcast_to(default_extrinsics().astype(np.float32), true.shape)
+    report: dict[str, dict[str, float]] = {}
+    if how == "default":
+        used = default.copy()
+    elif how == "estimate":
+        if params is None:
+            raise ValueError("camera='estimate' needs the learned stage's parameters")
+        est = jax.device_get(_batched_floor()(params, batch.models, batch.inputs, method_config(base, "kinematic")))
+        usable = np.asarray(est.usable, bool)
+        used = np.where(usable[:, None, None], np.asarray(est.extrinsics, np.float32), default)
+        for i, c in enumerate(batch.clips):
+            R, t = true[i, :3, :3], true[i, :3, 3]
+            up = np.asarray(est.up[i], np.float64)
+            report[c.name] = {
+                "usable": float(usable[i]),
+                "up_error_deg": float(np.degrees(np.arccos(np.clip(up @ R[:, 2] / np.linalg.norm(up), -1, 1)))),
+                "height_error_m": float(est.height_m[i] - (-R.T @ t)[2]),
+            }
+    else:
+        raise ValueError(f"camera must be 'given', 'estimate' or 'default', got {how!r}")
+    assert used.shape[0] == B
+    batch.inputs = batch.inputs.replace(extrinsics=used.astype(np.float32))
+    batch.true_extrinsics = true
+    return report
+
+
 def _ground_truth_pred(gt_i: dict) -> dict:
     p = dict(gt_i)
     if "contacts" in p:
@@ -264,6 +313,13 @@ def evaluate(
     length = max(c.num_frames for c in usable)
     B = min(config.batch_size, len(usable))
     batches = [_prepare(usable[i : i + B], length, B, config.subject_height) for i in range(0, len(usable), B)]
+    floor: dict[str, dict[str, float]] = {}
+    if config.camera != "given":
+        if config.subject_height == "auto":
+            raise ValueError("subject_height='auto' measures the subject against the true camera; with "
+                             f"camera={config.camera!r} use 'given' or 'nominal'")
+        for b in batches:
+            floor.update(_withhold_camera(b, config.camera, params, base))
 
     per_clip: dict[str, dict[str, dict[str, float]]] = {m: {} for m in config.methods}
     motions: dict[str, dict[str, dict[str, np.ndarray]]] = {}
@@ -306,6 +362,8 @@ def evaluate(
         "own_params": sorted(method_params or {}),
         "seed": config.seed,
         "max_frames": config.max_frames,
+        "camera": config.camera,
+        **({"floor": floor} if floor else {}),
     }
     return EvalResult(str(archive), [c.name for c in usable], tuple(config.methods), summary, counts,
                       per_clip, failures, motions, info)
@@ -321,6 +379,8 @@ def _predict(params, batch: _Batch, method: str, cfg) -> list[tuple[dict, float,
             out.append((pred, c.mass_kg or subject_model(c).total_mass, {}))
         return out
     motion = _batched_reconstruct(methods_.get_method(method).name)(params, batch.models, batch.inputs, cfg)
+    if batch.true_extrinsics is not None:  # made with another camera: into the true world
+        motion = _to_true_world(motion, batch.inputs.extrinsics, batch.true_extrinsics)
     # (a non-finite estimate gives non-finite quantities, which evaluate_arrays reports)
     qty = _batched_quantities(batch.clips[0].layout)(batch.models, motion.q, batch.inputs.fps,
                                                    batch.half_width)
@@ -338,6 +398,13 @@ def _predict(params, batch: _Batch, method: str, cfg) -> list[tuple[dict, float,
                "contact_prob": motion.contact_prob[i], "keypoints3d": pred["keypoints3d"]}
         out.append((pred, subject_model(clip).total_mass, own))
     return out
+
+
+@jax.jit
+def _to_true_world(motion, used, true):
+    from jmocap.methods import floor as F
+
+    return jax.vmap(lambda m, a, b: F.move_motion(m, *F.change_world(a, b)))(motion, used, true)
 
 
 def aggregate(per_clip: dict[str, dict[str, dict[str, float]]]):
@@ -478,7 +545,8 @@ def cmd_eval(args) -> int:
                 raise ValueError(f"--method-params expects METHOD=PATH with a known method, got {item!r}")
             own[name] = load_run_params(path, method="physcap")
         cfg = EvalConfig(methods, args.batch_size, args.max_clips, args.seed, not args.quiet,
-                         subject_height=getattr(args, "subject_height", "given"))
+                         subject_height=getattr(args, "subject_height", "given"),
+                         camera=getattr(args, "camera", "given"))
         result = evaluate(args.archive, params, base, cfg, method_params=own)
     except (ValueError, FileNotFoundError, ArchiveError) as e:
         print(f"jmocap eval: {e}", file=sys.stderr)

@@ -157,6 +157,54 @@ def subject_height(clip: Clip) -> float:
     return DEFAULT_HEIGHT_M if clip.height_m is None else float(clip.height_m)
 
 
+#: where a clip's extrinsics came from (the result's ``extrinsics_source``)
+EXTRINSICS_SOURCES = ("input", "estimated", "default")
+
+
+class FloorEstimator:
+    """The camera of clips without extrinsics, estimated from their 2D keypoints
+    (:mod:`jmocap.methods.floor`: the floor seen from the person, TPNet in the camera frame).
+
+    ``params`` and ``config`` are a video method's (its TPNet weights, layout and network sizes).
+    :meth:`resolve` gives a clip without extrinsics the estimated camera, or the default camera
+    (:func:`jmocap.camera.default_extrinsics`) where the estimate is not usable, and records which
+    in ``meta["extrinsics_source"]`` (:data:`EXTRINSICS_SOURCES`) and the estimate in
+    ``meta["camera_estimate"]``. One compilation per padded length (the next power of two, at
+    least 64 frames)."""
+
+    def __init__(self, params: dict, config, floor=None):
+        from jmocap.methods import floor as F
+
+        self.params = {"tpnet": params["tpnet"]}
+        self.config = config
+        self.floor = floor or F.FloorConfig()
+        self._fn = jax.jit(F.estimate_floor)
+
+    def estimate(self, clip: Clip):
+        """The :class:`jmocap.methods.floor.FloorEstimate` of a clip (numpy), whatever its own
+        extrinsics (they are not read)."""
+        length = max(64, 1 << max(0, clip.num_frames - 1).bit_length())
+        inputs = ClipInputs.from_clip(clip.replace(extrinsics=None), length)
+        est = self._fn(self.params, subject_model(clip), inputs, self.config, self.floor)
+        return jax.device_get(est)
+
+    def resolve(self, clip: Clip) -> Clip:
+        """The clip with extrinsics: its own, else the estimate, else the default camera."""
+        if clip.extrinsics is not None:
+            return clip.replace(meta={**clip.meta, "extrinsics_source": "input"})
+        est = self.estimate(clip)
+        report = {
+            "pitch_deg": round(float(est.pitch_deg), 3), "roll_deg": round(float(est.roll_deg), 3),
+            "height_m": round(float(est.height_m), 4), "support": round(float(est.support), 4),
+            "frames": int(est.frames),
+        }
+        if bool(est.usable):
+            meta = {**clip.meta, "extrinsics_source": "estimated", "camera_estimate": report}
+            return clip.replace(extrinsics=np.asarray(est.extrinsics, np.float64), meta=meta)
+        report["reason"] = "the estimate is not usable (too few frames, or the fitted floor is implausible)"
+        return clip.replace(meta={**clip.meta, "extrinsics_source": "default", "camera_estimate": report})
+
+
 class Reconstructor:
     """Reconstructs clips with one method in batches of ``batch`` clips per device, chunk by chunk.
 
@@ -275,7 +323,9 @@ def _fields(res: ChunkResult) -> dict[str, np.ndarray]:
 
 
 __all__ = [
+    "EXTRINSICS_SOURCES",
     "ChunkResult",
+    "FloorEstimator",
     "Reconstructor",
     "TILE",
     "tiled_vmap",

@@ -29,6 +29,10 @@ layout             str        ()            keypoint layout
 intrinsics         float64    (4,)          fx, fy, cx, cy
 image_size         int64      (2,)          width, height
 extrinsics         float64    (4, 4)        world -> camera
+extrinsics_source  str        ()            where ``extrinsics`` came from: ``input`` (clip or
+                                            sidecar), ``estimated`` (the floor seen from the
+                                            person, jmocap.methods.floor), ``default``
+                                            (jmocap.camera.default_extrinsics)
 assumed            str        ()            JSON list of values that were defaults, not data
 warnings           str        ()            JSON list of what was implausible but usable in the
                                             input (jmocap.data.validate; also in the manifest)
@@ -85,7 +89,7 @@ _SERIES = {
 _STATIC = {"intrinsics": (4,), "image_size": (2,), "extrinsics": (4, 4)}
 _SCALARS = ("fps", "height_m", "mass_kg")
 _STRINGS = ("format", "name", "source", "method", "layout", "version", "config", "params_sha256",
-            "model_sha256", "assumed", "warnings", "height_source")
+            "model_sha256", "assumed", "warnings", "height_source", "extrinsics_source")
 _BOOLS = ("forces_estimated",)
 
 
@@ -143,6 +147,7 @@ def result_arrays(
     assumed: Sequence[str] = (),
     warnings: Sequence[str] = (),
     height_source: str | None = None,
+    extrinsics_source: str | None = None,
 ) -> dict[str, np.ndarray]:
     """The arrays of a ``jmocap-result-1`` file (see the module docstring)."""
     extr = ClipInputs.from_clip(clip).extrinsics  # the clip's, or the default camera
@@ -169,6 +174,8 @@ def result_arrays(
         "warnings": np.array(json.dumps(list(warnings))),
         "height_source": np.array(height_source if height_source is not None
                                   else ("input" if clip.height_m is not None else "nominal")),
+        "extrinsics_source": np.array(extrinsics_source if extrinsics_source is not None
+                                      else ("input" if clip.extrinsics is not None else "default")),
     }
     out.update({k: np.array(v) for k, v in identity.items()})
     return out
