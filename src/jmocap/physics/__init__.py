@@ -10,6 +10,7 @@ from jmocap.physics.contact import (
     project_velocity,
 )
 from jmocap.physics.dynamics import (
+    FrameMotion,
     SmoothDynamics,
     bias_forces,
     bias_velocities,
@@ -17,6 +18,7 @@ from jmocap.physics.dynamics import (
     cholesky,
     finite_difference_velocity,
     forward_dynamics,
+    inertial_force,
     integrate,
     integrate_positions,
     inverse_dynamics,
@@ -48,6 +50,7 @@ __all__ = [
     "project_velocity",
     "solve_projection",
     "Kinematics",
+    "FrameMotion",
     "SmoothDynamics",
     "bias_forces",
     "bias_velocities",
@@ -57,6 +60,7 @@ __all__ = [
     "contact_jacobian",
     "forward_dynamics",
     "forward_kinematics",
+    "inertial_force",
     "integrate",
     "integrate_positions",
     "inverse_dynamics",

@@ -122,23 +122,85 @@ def bias_velocities(model: Model, kin: Kinematics, qd: Array) -> tuple[Array, Ar
     return moves @ scaled, moves @ (cdof_dot * qd[:, None])
 
 
-def rnea(model: Model, q: Array, qd: Array, qdd: Array, *, kin: Kinematics | None = None) -> Array:
+@struct.dataclass
+class FrameMotion:
+    """The motion of a non-inertial reference frame (a moving camera) relative to the inertial
+    world, in the frame's own coordinates at the instant: angular velocity ``omega`` (3,), angular
+    acceleration ``alpha`` (3,) (``d omega / dt``, the same in either frame since
+    ``omega x omega = 0``) and the classical linear acceleration ``accel`` (3,) of the frame's
+    origin. The frame's linear velocity is not needed: forces do not depend on it (Galilean
+    invariance)."""
+
+    omega: Array
+    alpha: Array
+    accel: Array
+
+    @staticmethod
+    def at_rest(dtype=jnp.float32) -> FrameMotion:
+        z = jnp.zeros(3, dtype)
+        return FrameMotion(z, z, z)
+
+
+def rnea(model: Model, q: Array, qd: Array, qdd: Array, *, kin: Kinematics | None = None,
+         gravity: Array | None = None, frame: FrameMotion | None = None) -> Array:
     """Inverse dynamics without the mass matrix: ``M(q) qdd + h(q, qd)``, (nv,), by the
     recursive Newton-Euler algorithm (MuJoCo's ``mj_rne`` with accelerations, plus the joint
     armature). O(nbody nv); cheaper than forming ``M`` when only the generalised force is needed
-    (whole-clip trajectory optimisation evaluates it at every frame of every iteration)."""
+    (whole-clip trajectory optimisation evaluates it at every frame of every iteration).
+
+    ``gravity`` (3,) replaces ``model.gravity`` (gravity as seen in a rotated frame, e.g. a
+    camera's). ``frame``: ``q``, ``qd``, ``qdd`` are relative to a moving frame (a camera) whose
+    motion relative to the inertial world is ``frame`` (:class:`FrameMotion`); the result is then
+    the generalised force that moves the body so in the *inertial* world (the root's force in
+    the moving frame's coordinates, its torque in the root's own frame, as ``qd``'s): the
+    recursion starts from a base that moves with the frame instead of a fixed one.
+    """
     kin = forward_kinematics(model, q) if kin is None else kin
     dtype = kin.cdof.dtype
     cdof = kin.cdof
+    qd = jnp.asarray(qd, dtype)
     qdd = jnp.asarray(qdd, dtype)
     moves = jnp.asarray(model.topo.dof_moves_body, dtype)  # (nbody, nv)
-    vel, acc = bias_velocities(model, kin, qd)
-    grav = jnp.concatenate([jnp.zeros(3, dtype), -_c(model.gravity, dtype)])
+    g = _c(model.gravity, dtype) if gravity is None else jnp.asarray(gravity, dtype)
+    grav = jnp.concatenate([jnp.zeros(3, dtype), -g])
+    if frame is None:
+        vel, acc = bias_velocities(model, kin, qd)
+    else:
+        # the base: the moving frame's spatial velocity and acceleration about the spatial
+        # origin O (its origin's own velocity taken as zero: Galilean invariance); Featherstone's
+        # spatial acceleration has linear part a_P + alpha x (O - P) - omega x v_P, P the origin
+        w, al, a = (jnp.asarray(x, dtype) for x in (frame.omega, frame.alpha, frame.accel))
+        O = kin.origin
+        v0 = jnp.concatenate([w, jnp.cross(w, O)])
+        a0 = jnp.concatenate([al, a + jnp.cross(al, O)])
+        before = jnp.asarray(model.topo.velocity_before, dtype)  # (nv, nv)
+        scaled = cdof * qd[:, None]
+        vel = v0 + moves @ scaled
+        cdof_dot = cross_motion(v0 + before @ scaled, cdof)  # each dof's axis moves with its carrier
+        acc = a0 + moves @ (cdof_dot * qd[:, None])
     acc = acc + moves @ (cdof * qdd[:, None]) + grav  # MuJoCo's trick: accelerate the base against gravity
     inert = body_inertias(model, kin)
     f = inert.apply(acc) + cross_force(vel, inert.apply(vel))  # (nbody, 6)
     f_sub = moves.T @ f  # (nv, 6): net force on the subtree moved by each dof
     return jnp.sum(cdof * f_sub, -1) + _c(model.dof_armature, dtype) * qdd
+
+
+def inertial_force(model: Model, q: Array, qd: Array, frame: FrameMotion, gravity: Array | None = None, *,
+                   kin: Kinematics | None = None) -> Array:
+    """The generalised inertial force (nv,) on a body whose configuration and velocity ``q``,
+    ``qd`` are relative to a moving frame with motion ``frame`` (D&D, Li et al. 2022, eqs. 2-3:
+    linear, centripetal and Coriolis; exact for jmocap's rigid bodies, with the Euler force of
+    the frame's angular acceleration and each body's rotational inertia, where D&D's eq. 3 sums
+    point masses at the joints and omits the Euler term).
+
+    With it the equation of motion written in the moving frame as if it were inertial holds:
+    ``M qdd + h(q, qd; gravity) = tau + J^T f + I`` (``gravity``: the world's gravity in the
+    frame's coordinates), i.e. ``I = rnea(.., gravity) - rnea(.., gravity, frame=frame)``, for
+    any ``qdd`` (both are affine in it with the same ``M``). A frame accelerating by ``a``
+    pushes a body of mass ``m`` at rest in it by ``-m a``."""
+    kin = forward_kinematics(model, q) if kin is None else kin
+    z = jnp.zeros(model.nv, kin.cdof.dtype)
+    return rnea(model, q, qd, z, kin=kin, gravity=gravity) - rnea(model, q, qd, z, kin=kin, gravity=gravity, frame=frame)
 
 
 def bias_forces(model: Model, q: Array, qd: Array, *, kin: Kinematics | None = None) -> Array:
