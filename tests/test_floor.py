@@ -279,3 +279,12 @@ def test_eval_with_a_withheld_camera_scores_in_the_true_world(shipped):
             assert scores[how][key] == pytest.approx(scores["given"][key], rel=1e-3, abs=1e-3), (how, key)
     with pytest.raises(ValueError, match="camera must be"):
         evaluate("demo", params, config, EvalConfig(("kinematic",), 2, progress=False, camera="nope"), clips=clips)
+
+
+def test_padded_length_holds_the_clip_and_pads_by_less_than_half():
+    from jmocap.pipeline import padded_length
+
+    assert [padded_length(n) for n in (1, 64, 65, 96, 97, 129, 193, 300, 1000)] == [64, 64, 96, 96, 128, 192, 256, 384, 1024]
+    for n in range(1, 3000, 7):
+        L = padded_length(n)
+        assert L >= n and (n <= 64 or L < 1.5 * n)

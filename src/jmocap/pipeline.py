@@ -157,6 +157,18 @@ def subject_height(clip: Clip) -> float:
     return DEFAULT_HEIGHT_M if clip.height_m is None else float(clip.height_m)
 
 
+def padded_length(frames: int) -> int:
+    """The length a whole clip is padded to for a one-off pass over it (the floor estimate): the
+    smallest of 64, 96, 128, 192, 256, 384, ... (powers of two and their 1.5 multiples) that holds
+    it, so an archive of any lengths compiles a few programs and pads by less than half."""
+    n = 64
+    while True:
+        for cand in (n, n + n // 2):
+            if cand >= frames:
+                return cand
+        n *= 2
+
+
 #: where a clip's extrinsics came from (the result's ``extrinsics_source``)
 EXTRINSICS_SOURCES = ("input", "estimated", "default")
 
@@ -169,8 +181,7 @@ class FloorEstimator:
     :meth:`resolve` gives a clip without extrinsics the estimated camera, or the default camera
     (:func:`jmocap.camera.default_extrinsics`) where the estimate is not usable, and records which
     in ``meta["extrinsics_source"]`` (:data:`EXTRINSICS_SOURCES`) and the estimate in
-    ``meta["camera_estimate"]``. One compilation per padded length (the next power of two, at
-    least 64 frames)."""
+    ``meta["camera_estimate"]``. One compilation per padded length (:func:`padded_length`)."""
 
     def __init__(self, params: dict, config, floor=None):
         from jmocap.methods import floor as F
@@ -183,7 +194,7 @@ class FloorEstimator:
     def estimate(self, clip: Clip):
         """The :class:`jmocap.methods.floor.FloorEstimate` of a clip (numpy), whatever its own
         extrinsics (they are not read)."""
-        length = max(64, 1 << max(0, clip.num_frames - 1).bit_length())
+        length = padded_length(clip.num_frames)
         inputs = ClipInputs.from_clip(clip.replace(extrinsics=None), length)
         est = self._fn(self.params, subject_model(clip), inputs, self.config, self.floor)
         return jax.device_get(est)
@@ -326,6 +337,7 @@ __all__ = [
     "EXTRINSICS_SOURCES",
     "ChunkResult",
     "FloorEstimator",
+    "padded_length",
     "Reconstructor",
     "TILE",
     "tiled_vmap",

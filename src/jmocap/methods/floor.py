@@ -100,7 +100,8 @@ def _geman_mcclure_weight(r: Array, scale) -> Array:
 
 
 def body_frame_points(model: Model, tp: S.TargetPose) -> tuple[Array, Array]:
-    """Camera-frame sole points (T, 8, 3) and pelvis up axes (T, 3) of TPNet's pose."""
+    """Camera-frame sole points (T, 8, 3) and pelvis up axes (T, 3) of a camera-frame pose
+    (TPNet's, or the per-frame fit's: :func:`fitted_frames`)."""
     q_cam = tp.q_hat.at[:, 0:3].set(tp.trans_cam).at[:, 3:7].set(mat_to_quat(tp.rot_cam))
 
     def soles(q):
@@ -159,7 +160,7 @@ def fit_floor(points: Array, body_up: Array, mask: Array, config: FloorConfig | 
         step = -solve_spd3(H + 1e-9 * jnp.eye(3, dtype=dtype), g)
         n = _unit(n + step[0] * a1 + step[1] * a2)
         height = height + step[2]
-        # re-centre the offset on the new normal, then shrink the robust scale towards sigma_h
+        # graduated non-convexity: the robust scale shrinks from 4 sigma_h to sigma_h
         scale = jnp.maximum(sigma_h, scale * 0.5) if it < iterations - 1 else sigma_h
     low = jnp.min(points @ n, -1)
     r = low + height
@@ -207,12 +208,14 @@ def camera_angles(up: Array) -> tuple[Array, Array]:
 
 def camera_angles_inverse(pitch_deg, roll_deg) -> Array:
     """The up direction (camera frame) of a camera with these angles (:func:`camera_angles`)."""
-    p, r = jnp.deg2rad(jnp.asarray(pitch_deg, jnp.float32)), jnp.deg2rad(jnp.asarray(roll_deg, jnp.float32))
+    dtype = jnp.result_type(float)
+    p, r = jnp.deg2rad(jnp.asarray(pitch_deg, dtype)), jnp.deg2rad(jnp.asarray(roll_deg, dtype))
     return jnp.stack([jnp.cos(p) * jnp.sin(r), -jnp.cos(p) * jnp.cos(r), -jnp.sin(p)])
 
 
 def floor_from_target(model: Model, tp: S.TargetPose, mask: Array, config: FloorConfig | None = None) -> FloorEstimate:
-    """The floor estimate from TPNet's camera-frame output ``tp`` of a clip (``mask``: real frames)."""
+    """The floor estimate from a camera-frame pose ``tp`` of a clip (TPNet's or the per-frame
+    fit's; ``mask``: real frames)."""
     config = config or FloorConfig()
     pts, body_up = body_frame_points(model, tp)
     m = jnp.asarray(mask) & (tp.trans_cam[:, 2] > 0.1)  # a root behind the camera says nothing
