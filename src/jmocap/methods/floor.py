@@ -271,9 +271,10 @@ def fitted_frames(model: Model, tp: S.TargetPose, inputs: ClipInputs, config: An
 
 def change_world(E_from: Array, E_to: Array) -> tuple[Array, Array]:
     """``(R, t)`` taking world points of a camera with extrinsics ``E_from`` to the world of the
-    same camera with extrinsics ``E_to``: ``X_to = R X_from + t`` (``E_to^-1 E_from``)."""
-    A = jnp.linalg.inv(E_to) @ E_from
-    return A[:3, :3], A[:3, 3]
+    same camera with extrinsics ``E_to``: ``X_to = R X_from + t`` (``E_to^-1 E_from``, with the
+    rigid transform's closed-form inverse: no LAPACK on the batch path)."""
+    R_to, t_to = E_to[:3, :3], E_to[:3, 3]
+    return R_to.T @ E_from[:3, :3], R_to.T @ (E_from[:3, 3] - t_to)
 
 
 def move_motion(motion, R: Array, t: Array):
