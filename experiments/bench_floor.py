@@ -3,7 +3,7 @@ in one run: the shipped estimate (TPNet, the per-frame fit, the plane), the same
 per-frame fit (TPNet's pose as it is), and TPNet alone (what every video method runs anyway);
 seconds per clip after compilation (compile time reported separately), and the ratios.
 
-    .venv/bin/python experiments/bench_floor.py [--archive data/heldout] [--clips 8] [--frames 300]
+    .venv/bin/python experiments/bench_floor.py [--archive data/heldout] [--clips 8] [--frames 240]
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--archive", default="data/heldout")
     ap.add_argument("--clips", type=int, default=8)
-    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--frames", type=int, default=240)
     args = ap.parse_args(argv)
     params, cfg = default_params("kinematic")
     clips = [c for c in select_clips(args.archive) if c.num_frames >= args.frames][: args.clips]
