@@ -98,7 +98,7 @@ def main() -> None:
             continue
         a = np.stack(vals)
 
-        def rel(sl):
+        def rel(sl, a=a):
             return np.linalg.norm(a[:, sl] - ex[:, sl]) / np.linalg.norm(ex[:, sl])
 
         print(f"| {name} | {100 * rel(slice(0, 3)):.1f} % | {100 * rel(slice(3, 6)):.1f} % | {100 * rel(slice(6, None)):.1f} % |")
