@@ -19,8 +19,8 @@ the frames whose left and right the repair exchanged.
 The camera: ``camera`` (any sidecar :func:`~jmocap.data.formats.read_camera_json` reads: K,
 distortion, R/t, rvec/tvec, ...; its width and height must be the video's) or else jmocap's
 default intrinsics (f = 1000 px, principal point at the image centre) recorded in the clip's
-``meta["assumed"]``; without extrinsics, ``jmocap reconstruct`` assumes its default camera pose
-(recorded in the result). Lens distortion is removed from the keypoints (as the sidecar readers
+``meta["assumed"]``; without extrinsics, ``jmocap reconstruct`` estimates the camera's tilt and
+height from the person (``jmocap.methods.floor``; the result's ``extrinsics_source``). Lens distortion is removed from the keypoints (as the sidecar readers
 do); the overlay is drawn through the pinhole camera.
 """
 
