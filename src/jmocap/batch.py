@@ -429,12 +429,14 @@ def _read_ahead(sources: Sequence[Source], config, depth: int, options: BatchOpt
         t = time.perf_counter()
         try:
             clip, warnings = adapt_layout(resolve_subject(src.load(), options.height_m, options.mass_kg), config)
-            if floor is not None:
+            checked = check_clip(clip, config, src.where)  # an unusable clip fails here, before any estimate
+            if floor is not None and clip.extrinsics is None:
                 clip = floor.resolve(clip)
+                checked = check_clip(clip, config, src.where)  # the warnings of the estimated camera
             else:
                 clip = clip.replace(meta={**clip.meta, "extrinsics_source":
                                           "input" if clip.extrinsics is not None else "default"})
-            got = (clip, warnings + check_clip(clip, config, src.where))
+            got = (clip, warnings + checked)
         except Exception as e:  # noqa: BLE001 - recorded as the clip's failure (RecursionError too)
             got = e
         return got, time.perf_counter() - t

@@ -234,7 +234,6 @@ def _withhold_camera(batch: _Batch, how: str, params, base: dict) -> dict[str, d
     from jmocap.camera import default_extrinsics
 
     true = np.asarray(batch.inputs.extrinsics)
-    B = true.shape[0]
     default = np.broadcast_to(default_extrinsics().astype(np.float32), true.shape)
     report: dict[str, dict[str, float]] = {}
     if how == "default":
@@ -255,7 +254,6 @@ def _withhold_camera(batch: _Batch, how: str, params, base: dict) -> dict[str, d
             }
     else:
         raise ValueError(f"camera must be 'given', 'estimate' or 'default', got {how!r}")
-    assert used.shape[0] == B
     batch.inputs = batch.inputs.replace(extrinsics=used.astype(np.float32))
     batch.true_extrinsics = true
     return report

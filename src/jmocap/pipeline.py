@@ -175,7 +175,8 @@ EXTRINSICS_SOURCES = ("input", "estimated", "default")
 
 class FloorEstimator:
     """The camera of clips without extrinsics, estimated from their 2D keypoints
-    (:mod:`jmocap.methods.floor`: the floor seen from the person, TPNet in the camera frame).
+    (:mod:`jmocap.methods.floor`: the floor seen from the person, TPNet and the per-frame fit in
+    the camera frame).
 
     ``params`` and ``config`` are a video method's (its TPNet weights, layout and network sizes).
     :meth:`resolve` gives a clip without extrinsics the estimated camera, or the default camera
