@@ -51,6 +51,7 @@ from jmocap import physics as P
 from jmocap.inputs import ClipInputs
 from jmocap.methods import stages as S
 from jmocap.model import Model
+from jmocap.numerics import safe_normalize
 from jmocap.physics.linalg import solve_spd3
 from jmocap.physics.rotations import mat_to_quat, quat_mul, quat_to_mat
 
@@ -89,10 +90,6 @@ class FloorEstimate:
     usable: Array  # () bool: see the module docstring
 
 
-def _unit(v: Array) -> Array:
-    return v / jnp.maximum(jnp.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
-
-
 def _geman_mcclure_weight(r: Array, scale) -> Array:
     """IRLS weight of the Geman-McClure loss ``r^2 / (r^2 + s^2)``: ``s^4 / (r^2 + s^2)^2``."""
     s2 = jnp.square(scale)
@@ -129,11 +126,11 @@ def fit_floor(points: Array, body_up: Array, mask: Array, config: FloorConfig | 
 
     # 2. the body's up, robustly averaged
     lean = jnp.deg2rad(jnp.asarray(config.lean_scale_deg, dtype))
-    u = _unit(jnp.sum(m[:, None] * body_up, 0) + jnp.array([0.0, -1e-9, 0.0], dtype))
+    u = safe_normalize(jnp.sum(m[:, None] * body_up, 0) + jnp.array([0.0, -1e-9, 0.0], dtype))
     for _ in range(3):
         ang = jnp.arccos(jnp.clip(body_up @ u, -1.0, 1.0))
         w = m * _geman_mcclure_weight(ang, lean)
-        u = _unit(jnp.sum(w[:, None] * body_up, 0) + jnp.array([0.0, -1e-9, 0.0], dtype))
+        u = safe_normalize(jnp.sum(w[:, None] * body_up, 0) + jnp.array([0.0, -1e-9, 0.0], dtype))
     u_body = u
 
     # 3. the plane through the lowest points, normal near u_body
@@ -146,7 +143,7 @@ def fit_floor(points: Array, body_up: Array, mask: Array, config: FloorConfig | 
     for it in range(iterations):
         low = jnp.take_along_axis(points, jnp.argmin(points @ n, -1)[:, None, None], 1)[:, 0]  # (T, 3)
         # tangent basis at n
-        a1 = _unit(jnp.cross(n, jnp.where(jnp.abs(n[0]) < 0.9, jnp.array([1.0, 0, 0], dtype),
+        a1 = safe_normalize(jnp.cross(n, jnp.where(jnp.abs(n[0]) < 0.9, jnp.array([1.0, 0, 0], dtype),
                                           jnp.array([0, 0, 1.0], dtype))))
         a2 = jnp.cross(n, a1)
         r = low @ n + height
@@ -158,7 +155,7 @@ def fit_floor(points: Array, body_up: Array, mask: Array, config: FloorConfig | 
                                                                  jnp.zeros(1, dtype)]))
         g = (A * w[:, None]).T @ r + jnp.concatenate([pr / jnp.square(sigma_t), jnp.zeros(1, dtype)])
         step = -solve_spd3(H + 1e-9 * jnp.eye(3, dtype=dtype), g)
-        n = _unit(n + step[0] * a1 + step[1] * a2)
+        n = safe_normalize(n + step[0] * a1 + step[1] * a2)
         height = height + step[2]
         # graduated non-convexity: the robust scale shrinks from 4 sigma_h to sigma_h
         scale = jnp.maximum(sigma_h, scale * 0.5) if it < iterations - 1 else sigma_h
@@ -180,13 +177,13 @@ def extrinsics_from_floor(up: Array, height: Array, centre_cam: Array) -> Array:
     ``up`` (camera frame), with world y along the optical axis projected on the floor and the
     world origin on the floor under ``centre_cam`` (a camera-frame point, e.g. the person)."""
     dtype = up.dtype
-    z = _unit(up)
+    z = safe_normalize(up)
     fwd = jnp.array([0.0, 0.0, 1.0], dtype)
     y = fwd - (fwd @ z) * z
     # a camera looking straight down: the image's up direction instead
     alt = jnp.array([0.0, -1.0, 0.0], dtype)
     y = jnp.where(jnp.linalg.norm(y) > 1e-6, y, alt - (alt @ z) * z)
-    y = _unit(y)
+    y = safe_normalize(y)
     x = jnp.cross(y, z)
     R = jnp.stack([x, y, z], 1)  # columns: world axes in the camera frame -> X_c = R X_w + t
     # world coordinates of the centre with the camera at (0, 0, height): R^T X_c + (0, 0, height)
@@ -260,7 +257,7 @@ def fitted_frames(model: Model, tp: S.TargetPose, inputs: ClipInputs, config: An
     E = jnp.asarray(default_extrinsics(), dtype)
     inputs = inputs.replace(extrinsics=E)
     R, t = E[:3, :3], E[:3, 3]
-    q_hat = tp.q_hat.at[:, 0:3].set((tp.trans_cam - t) @ R).at[:, 3:7].set(mat_to_quat(jnp.matmul(R.T, tp.rot_cam)))
+    q_hat = S.root_in_world(tp.q_hat, tp.rot_cam, tp.trans_cam, E)
     no_floor = config.replace(w_floor=0.0, w_accel=0.0, w_contact_vel=0.0)
     prob = TO.problem(model, inputs, q_hat, jnp.zeros(tp.contact_logits.shape, dtype), no_floor)
     q1 = TO.per_frame_fit(model, q_hat, prob, no_floor, config.frame_iterations, config.gm_scale_initial,
@@ -286,7 +283,7 @@ def move_motion(motion, R: Array, t: Array):
 
     def move_q(q):
         pos = q[:, 0:3] @ R.T + t
-        quat = jax.vmap(lambda a: quat_mul(qR, a))(q[:, 3:7])
+        quat = quat_mul(qR, q[:, 3:7])  # (broadcasts over frames)
         return q.at[:, 0:3].set(pos).at[:, 3:7].set(quat)
 
     return motion.replace(

@@ -173,13 +173,17 @@ def target_pose(
     dt_cam = tp.apply(variables, causal_windows(feats, W), method=TPNet.translation, **kw)
     trans_cam = t_ls + dt_cam
 
-    # camera frame -> world: X_c = R X_w + t
-    E = jnp.asarray(inputs.extrinsics, dtype)
-    R, t = E[:3, :3], E[:3, 3]
+    q_hat = root_in_world(q_rr, rot_cam, trans_cam, jnp.asarray(inputs.extrinsics, dtype))
+    return TargetPose(q_hat, logits, rot_cam, trans_cam, t_ls, p_rr)
+
+
+def root_in_world(q: Array, rot_cam: Array, trans_cam: Array, extrinsics: Array) -> Array:
+    """``q`` (T, nq) with its root set from a camera-frame orientation (T, 3, 3) and position
+    (T, 3), moved to the world of ``extrinsics`` (``X_c = R X_w + t``)."""
+    R, t = extrinsics[:3, :3], extrinsics[:3, 3]
     rot_w = jnp.matmul(R.T, rot_cam)  # R^T R_cam
     pos_w = (trans_cam - t) @ R  # R^T (t_cam - t), row-vector form
-    q_hat = q_rr.at[:, 0:3].set(pos_w).at[:, 3:7].set(mat_to_quat(rot_w))
-    return TargetPose(q_hat, logits, rot_cam, trans_cam, t_ls, p_rr)
+    return q.at[:, 0:3].set(pos_w).at[:, 3:7].set(mat_to_quat(rot_w))
 
 
 def least_squares_translation(p_rr: Array, k_c: Array, prior_depth: float = 4.0, prior_weight: float = 1e-4) -> Array:
@@ -406,6 +410,7 @@ def on_floor(model: Model, q: Array) -> Array:
 
 __all__ = [
     "on_floor",
+    "root_in_world",
     "sole_points",
     "PDGains",
     "RigidBodyTerms",

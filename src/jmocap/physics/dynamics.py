@@ -109,17 +109,20 @@ def mass_matrix(model: Model, q: Array, *, kin: Kinematics | None = None) -> Arr
 # ---- bias forces ---------------------------------------------------------------------------
 
 
-def bias_velocities(model: Model, kin: Kinematics, qd: Array) -> tuple[Array, Array]:
+def bias_velocities(model: Model, kin: Kinematics, qd: Array, base_velocity: Array | None = None) -> tuple[Array, Array]:
     """Body spatial velocities and bias accelerations (the accelerations when ``qdd = 0``),
     each (nbody, 6) ``[angular; linear]`` about ``kin.origin`` in world orientation, without
-    gravity."""
+    gravity. ``base_velocity`` (6,): the spatial velocity of a moving base (a camera) that
+    carries every body and every dof's axis (None: a fixed base)."""
     dtype = kin.cdof.dtype
     qd = jnp.asarray(qd, dtype)
     moves = jnp.asarray(model.topo.dof_moves_body, dtype)  # (nbody, nv)
     before = jnp.asarray(model.topo.velocity_before, dtype)  # (nv, nv)
     scaled = kin.cdof * qd[:, None]  # (nv, 6)
-    cdof_dot = cross_motion(before @ scaled, kin.cdof)  # the frame carrying each dof's axis moves
-    return moves @ scaled, moves @ (cdof_dot * qd[:, None])
+    carrier = before @ scaled if base_velocity is None else base_velocity + before @ scaled
+    cdof_dot = cross_motion(carrier, kin.cdof)  # the frame carrying each dof's axis moves
+    vel = moves @ scaled if base_velocity is None else base_velocity + moves @ scaled
+    return vel, moves @ (cdof_dot * qd[:, None])
 
 
 @struct.dataclass
@@ -171,13 +174,8 @@ def rnea(model: Model, q: Array, qd: Array, qdd: Array, *, kin: Kinematics | Non
         # spatial acceleration has linear part a_P + alpha x (O - P) - omega x v_P, P the origin
         w, al, a = (jnp.asarray(x, dtype) for x in (frame.omega, frame.alpha, frame.accel))
         O = kin.origin
-        v0 = jnp.concatenate([w, jnp.cross(w, O)])
-        a0 = jnp.concatenate([al, a + jnp.cross(al, O)])
-        before = jnp.asarray(model.topo.velocity_before, dtype)  # (nv, nv)
-        scaled = cdof * qd[:, None]
-        vel = v0 + moves @ scaled
-        cdof_dot = cross_motion(v0 + before @ scaled, cdof)  # each dof's axis moves with its carrier
-        acc = a0 + moves @ (cdof_dot * qd[:, None])
+        vel, acc = bias_velocities(model, kin, qd, base_velocity=jnp.concatenate([w, jnp.cross(w, O)]))
+        acc = jnp.concatenate([al, a + jnp.cross(al, O)]) + acc
     acc = acc + moves @ (cdof * qdd[:, None]) + grav  # MuJoCo's trick: accelerate the base against gravity
     inert = body_inertias(model, kin)
     f = inert.apply(acc) + cross_force(vel, inert.apply(vel))  # (nbody, 6)
