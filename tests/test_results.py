@@ -32,7 +32,9 @@ def _clip(T=6, **kw):
 
 
 def test_every_written_field_reads_back(tmp_path):
-    clip = _clip(height_m=1.62, mass_kg=55.0)
+    track = np.repeat(np.eye(4)[None], 6, 0)
+    track[:, :3, 3] = [[0.02 * t, 0.0, 4.0] for t in range(6)]  # a camera sliding sideways (optional field)
+    clip = _clip(height_m=1.62, mass_kg=55.0, camera_track=track)
     model = character(1.62, 55.0)
     T, rng = clip.num_frames, np.random.default_rng(1)
     shapes = {"q": (model.nq,), "qd": (model.nv,), "tau": (model.nv,), "grf": (4, 3), "contact_prob": (4,),
@@ -52,13 +54,15 @@ def test_every_written_field_reads_back(tmp_path):
     for k in (*MOTION_FIELDS, "certified"):
         np.testing.assert_array_equal(r[k], res[k])
     np.testing.assert_array_equal(r["keypoints2d"], clip.keypoints)
+    np.testing.assert_array_equal(r["camera_track"], track)
+    np.testing.assert_array_equal(r["extrinsics"], track[0])
     assert r["diagnostics"] == res["diagnostics"]
     assert r["format"] == RESULT_FORMAT and r["name"] == "walk/take1" and r["source"] == "in/walk.npz"
     assert r["method"] == "physcap" and r["forces_estimated"] is True and r["layout"] == "body25"
     assert (r["fps"], r["height_m"]) == (25.0, 1.62) and r["mass_kg"] == pytest.approx(55.0)
     np.testing.assert_array_equal(r["intrinsics"], clip.intrinsics)
     np.testing.assert_array_equal(r["image_size"], [640, 480])
-    assert r["extrinsics"].shape == (4, 4) and r["assumed"] == ["extrinsics"]
+    assert r["extrinsics"].shape == (4, 4) and r["assumed"] == []  # the track gives the camera
     assert {k: r[k] for k in identity} == identity
     assert result_model(r) is character(1.62, 55.0)  # the cached character of that subject
 

@@ -92,6 +92,16 @@ def _kinds_arg(text: str):
     return kinds
 
 
+def _camera_kinds_arg(text: str):
+    from jmocap.data.synthetic import MOVING_KINDS
+
+    kinds = tuple(k.strip() for k in text.split(",") if k.strip())
+    bad = [k for k in kinds if k not in MOVING_KINDS + ("static",)]
+    if bad or not kinds:
+        raise argparse.ArgumentTypeError(f"unknown camera kind(s) {bad}; known: {', '.join(MOVING_KINDS)}, static")
+    return kinds
+
+
 @command("data", "synthetic data and clip archives")
 def _data(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="data_command", metavar="<data command>", required=True)
@@ -125,6 +135,10 @@ def _data(p: argparse.ArgumentParser) -> None:
                    help="the extended generator: everyday motions (bend, crouch, reach) beside the classic "
                         "kinds, gestures and speed changes while walking, subjects 1.45-2.0 m, phone to "
                         "telephoto cameras 2-10 m away and 0.3-3 m high, occlusion bursts (docs/data.md)")
+    s.add_argument("--moving-camera", type=_camera_kinds_arg, nargs="?", const=("handheld", "pan", "dolly", "orbit"),
+                   default=(), metavar="K1,K2",
+                   help="film each clip with a moving camera drawn from K1,K2 (default: handheld, pan, dolly, "
+                        "orbit; 'static' may be one of them) and store its per-frame track (camera_track)")
     s.add_argument("--no-corruption", action="store_true",
                    help="exact 2D projections, confidence 1 (with --imu: exact IMU signals)")
     s.add_argument("--imu", action="store_true",
@@ -167,10 +181,14 @@ def cmd_data_synth(args) -> int:
     if args.controller != "qp" and not args.physics:
         print("jmocap data synth: --controller needs --physics", file=sys.stderr)
         return 2
+    if args.imu and args.moving_camera:
+        print("jmocap data synth: --moving-camera is for 2D keypoint clips, not --imu", file=sys.stderr)
+        return 2
     from jmocap.data.synthetic.physics import PhysicsConfig
 
     fields = dict(frames=args.frames_per_clip, fps=args.fps, layout=args.layout, physics=args.physics,
-                  kinds=args.kinds, physics_cfg=PhysicsConfig(controller=args.controller))
+                  kinds=args.kinds, physics_cfg=PhysicsConfig(controller=args.controller),
+                  moving_camera=args.moving_camera)
     config = SynthConfig.extended_generator(**fields) if args.extended else SynthConfig(**fields)
     if args.no_corruption:
         config = dataclasses.replace(config, corruption=Corruption.none())
@@ -456,10 +474,12 @@ def _eval(p: argparse.ArgumentParser) -> None:
                    help="the height the estimates use: the clips' own (default), estimated from the 2D "
                         "evidence as for clips without one (jmocap.subject), or the nominal 1.75 m character; "
                         "the ground truth always uses the clips' own")
-    p.add_argument("--camera", choices=("given", "estimate", "default"), default="given",
-                   help="the extrinsics the estimates use: the clips' own (default), withheld and estimated "
-                        "from the 2D evidence as for an uncalibrated video (jmocap.methods.floor), or withheld "
-                        "and replaced by the default camera; estimates are scored in the true world")
+    p.add_argument("--camera", choices=("given", "static", "estimate", "default"), default="given",
+                   help="the extrinsics the estimates use: the clips' own (default; a moving camera's track), "
+                        "'static': a moving camera's first frame for every frame (the camera's motion ignored), "
+                        "withheld and estimated from the 2D evidence as for an uncalibrated video "
+                        "(jmocap.methods.floor), or withheld and replaced by the default camera; estimates are "
+                        "scored in the true world")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)
 

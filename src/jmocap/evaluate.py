@@ -95,6 +95,8 @@ class EvalConfig:
     # the documented default camera, jmocap.camera.default_extrinsics). Estimates made with a
     # withheld camera are moved into the true world through the camera before scoring (the same
     # image, so the same camera-frame motion): every metric then also scores the floor's estimate.
+    # "static": a moving camera's track withheld, its first frame taken as a static camera (what
+    # a method that ignores the camera's motion makes of the clip: the moving-camera baseline).
     camera: str = "given"
 
 
@@ -208,15 +210,20 @@ def _prepare(clips: list[Clip], length: int, size: int, subject_height: str = "g
     return _Batch(clips, inputs, models, gt, hw)
 
 
-def _evaluate_clip(clip: Clip, pred: dict, gt: dict, length: int, pred_mass: float) -> dict[str, float]:
+def _evaluate_clip(clip: Clip, pred: dict, gt: dict, length: int, pred_mass: float,
+                   static_camera: bool = False) -> dict[str, float]:
     """The clip's metrics, plus the method's own per-clip report (``Motion.diagnostics``, e.g.
-    ``pip``'s tracking failures) as ``diag_<name>`` entries (per clip only: not summarised)."""
+    ``pip``'s tracking failures) as ``diag_<name>`` entries (per clip only: not summarised).
+    ``static_camera``: the estimate took a moving camera's first frame for all its frames (its
+    camera-frame metrics see it through that camera)."""
     mask = np.arange(length) < clip.num_frames
     pred = dict(pred)
     diagnostics = pred.pop("diagnostics", None) or {}
+    camera = M.clip_camera(clip, length)
+    pred_camera = camera.replace(extrinsics=camera.extrinsics[0]) if static_camera and clip.moving_camera else None
     out = M.evaluate_arrays(
-        pred, gt, fps=clip.fps, mask=mask, camera=M.clip_camera(clip), root=clip.layout_spec.root_indices,
-        pred_mass=pred_mass, gt_mass=clip.mass_kg or subject_model(clip).total_mass,
+        pred, gt, fps=clip.fps, mask=mask, camera=camera, root=clip.layout_spec.root_indices,
+        pred_mass=pred_mass, gt_mass=clip.mass_kg or subject_model(clip).total_mass, pred_camera=pred_camera,
     )
     return {**out, **{f"diag_{k}": float(v) for k, v in diagnostics.items()}}
 
@@ -233,6 +240,9 @@ def _withhold_camera(batch: _Batch, how: str, params, base: dict) -> dict[str, d
     keypoints (:attr:`EvalConfig.camera`); returns per clip what the estimate got."""
     from jmocap.camera import default_extrinsics
 
+    if how == "static":  # a moving camera's track withheld: its first frame, as a static camera
+        batch.inputs = batch.inputs.with_static_camera(batch.inputs.extrinsics)
+        return {}
     true = np.asarray(batch.inputs.extrinsics)
     default = np.broadcast_to(default_extrinsics().astype(np.float32), true.shape)
     report: dict[str, dict[str, float]] = {}
@@ -253,8 +263,8 @@ def _withhold_camera(batch: _Batch, how: str, params, base: dict) -> dict[str, d
                 "height_error_m": float(est.height_m[i] - (-R.T @ t)[2]),
             }
     else:
-        raise ValueError(f"camera must be 'given', 'estimate' or 'default', got {how!r}")
-    batch.inputs = batch.inputs.replace(extrinsics=used.astype(np.float32))
+        raise ValueError(f"camera must be 'given', 'static', 'estimate' or 'default', got {how!r}")
+    batch.inputs = batch.inputs.with_static_camera(used.astype(np.float32))
     batch.true_extrinsics = true
     return report
 
@@ -313,7 +323,7 @@ def evaluate(
     batches = [_prepare(usable[i : i + B], length, B, config.subject_height) for i in range(0, len(usable), B)]
     floor: dict[str, dict[str, float]] = {}
     if config.camera != "given":
-        if config.subject_height == "auto":
+        if config.subject_height == "auto" and config.camera != "static":
             raise ValueError("subject_height='auto' measures the subject against the true camera; with "
                              f"camera={config.camera!r} use 'given' or 'nominal'")
         for b in batches:
@@ -341,7 +351,8 @@ def evaluate(
                 continue
             for clip, gt, (pred, mass, own) in zip(batch.clips, batch.gt, preds, strict=True):
                 try:
-                    per_clip[method][clip.name] = _evaluate_clip(clip, pred, gt, length, mass)
+                    per_clip[method][clip.name] = _evaluate_clip(clip, pred, gt, length, mass,
+                                                                 config.camera == "static" and cfg is not None)
                 except ValueError as e:
                     failures.append({"method": method, "clip": clip.name, "error": str(e)})
                 if clip.name in keep_motions and own:

@@ -26,11 +26,16 @@ class ClipInputs:
     extrinsics: Array  # (4, 4) world -> camera (OpenCV axes)
     fps: Array  # () frames per second
     mask: Array  # (T,) bool, real frames
+    # (T, 4, 4) world -> camera of every frame (a moving camera's track; padding repeats the
+    # last frame), or None: the static ``extrinsics`` for every frame (:meth:`world_to_camera`)
+    camera_track: Array | None = None
 
     @staticmethod
     def from_clip(clip, length: int | None = None) -> ClipInputs:
         """Inputs of a :class:`jmocap.data.clip.Clip`, optionally padded to ``length`` frames.
-        A clip without extrinsics gets :func:`jmocap.camera.default_extrinsics`."""
+        A clip without extrinsics gets :func:`jmocap.camera.default_extrinsics`; a clip with a
+        moving camera its track, padded with its last frame (``camera_track``); every other
+        clip a ``camera_track`` of its static extrinsics, so that clips of both kinds batch."""
         kp = np.asarray(clip.keypoints, np.float32)
         T = kp.shape[0]
         L = T if length is None else int(length)
@@ -38,6 +43,8 @@ class ClipInputs:
             raise ValueError(f"clip {clip.name!r} has {T} frames, more than the padded length {L}")
         pad = np.zeros((L - T, *kp.shape[1:]), np.float32)
         ext = clip.extrinsics if clip.extrinsics is not None else default_extrinsics()
+        track = np.broadcast_to(ext, (T, 4, 4)) if clip.camera_track is None else clip.camera_track
+        track = np.concatenate([track, np.broadcast_to(track[-1], (L - T, 4, 4))])
         return ClipInputs(
             keypoints=np.concatenate([kp, pad]),
             intrinsics=np.asarray(clip.intrinsics, np.float32),
@@ -45,7 +52,21 @@ class ClipInputs:
             extrinsics=np.asarray(ext, np.float32),
             fps=np.float32(clip.fps),
             mask=np.arange(L) < T,
+            camera_track=track.astype(np.float32),
         )
+
+    def world_to_camera(self) -> Array:
+        """(..., T, 4, 4) world -> camera of every frame: ``camera_track``, or the static
+        ``extrinsics`` repeated."""
+        if self.camera_track is not None:
+            return jnp.asarray(self.camera_track)
+        E = jnp.asarray(self.extrinsics)
+        T = self.keypoints.shape[-3]
+        return jnp.broadcast_to(E[..., None, :, :], (*E.shape[:-2], T, 4, 4))
+
+    def with_static_camera(self, extrinsics) -> ClipInputs:
+        """These inputs seen by one static camera ``extrinsics`` (4, 4) (or (B, 4, 4))."""
+        return self.replace(extrinsics=extrinsics, camera_track=None)
 
     @property
     def camera(self) -> Camera:

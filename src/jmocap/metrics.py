@@ -1027,6 +1027,9 @@ METRICS: dict[str, MetricInfo] = {
     "auc_pct": MetricInfo("AUC 0-150mm (root-aligned)", "%", "higher", "[000] Tab. 1"),
     "pa_pck150_pct": MetricInfo("PCK@150mm (Procrustes)", "%", "higher", "[000] Tab. 1"),
     "pa_auc_pct": MetricInfo("AUC 0-150mm (Procrustes)", "%", "higher", "[000] Tab. 1"),
+    "mpjpe_cam_mm": MetricInfo("MPJPE (root-aligned), camera frame", "mm", "lower", "[003] Tab. 1"),
+    "root_err_cam_mm": MetricInfo("root translation error, camera frame", "mm", "lower", "[003]"),
+    "accel_err_cam_m_s2": MetricInfo("acceleration error, camera frame", "m/s^2", "lower", "[003] Tab. 1"),
     "root_err_mm": MetricInfo("global root translation error", "mm", "lower", "[000] Tab. 2"),
     "e_smooth_mm": MetricInfo("e_smooth", "mm", "lower", "[000] eq. 26, Tab. 3"),
     "sigma_smooth_mm": MetricInfo("sigma_smooth", "mm", "lower", "[000] Tab. 3"),
@@ -1098,6 +1101,7 @@ def evaluate_arrays(
     root: tuple[int, ...] = (0,),
     pred_mass: float | None = None,
     gt_mass: float | None = None,
+    pred_camera: Camera | None = None,
 ) -> dict[str, float]:
     """Every applicable metric of one clip as a flat ``{key: float}`` (keys: :data:`METRICS`).
 
@@ -1108,6 +1112,11 @@ def evaluate_arrays(
     for the ground truth. ``mask`` (T,) marks real frames; ``camera`` is the input view;
     ``root`` the root joint indices of the layout; the masses (kg) give the body weights of the
     estimate's character and of the subject.
+
+    A moving ``camera`` (extrinsics (T, 4, 4), one per frame) adds the camera-frame metrics
+    (``*_cam_*``): the ground truth seen by it, the estimate by ``pred_camera``, the camera the
+    estimate was made with where that differs (a method that took the first frame's camera for
+    all, ignoring the camera's motion; default ``camera``).
 
     A metric whose inputs are missing is absent from the result, and so is one that is
     undefined for this clip (e.g. ballistic GRF without flight frames); no value is NaN. Inputs
@@ -1134,13 +1143,13 @@ def evaluate_arrays(
     p, g = _finite(pred, "pred", m), _finite(gt, "gt", m)
     values = _metric_values(p, g, m, np.float32(fps), camera, tuple(int(i) for i in root),
                             None if pred_mass is None else np.float32(pred_mass),
-                            None if gt_mass is None else np.float32(gt_mass))
+                            None if gt_mass is None else np.float32(gt_mass), pred_camera)
     values = {k: float(v) for k, v in jax.device_get(values).items()}
     return {k: values[k] for k in METRICS if k in values and np.isfinite(values[k])}
 
 
 @partial(jax.jit, static_argnames=("root",))
-def _metric_values(p, g, m, fps, camera, root, pred_mass, gt_mass) -> dict[str, Array]:
+def _metric_values(p, g, m, fps, camera, root, pred_mass, gt_mass, pred_camera=None) -> dict[str, Array]:
     """The metrics of :func:`evaluate_arrays` as arrays (NaN where undefined); the set of keys
     follows the (static) set of inputs."""
     out: dict[str, Array] = {}
@@ -1168,6 +1177,12 @@ def _metric_values(p, g, m, fps, camera, root, pred_mass, gt_mass) -> dict[str, 
             side = side_view_camera(camera, pivot)
             seen = jm & (world_to_camera(side, kg)[..., 2] >= SIDE_VIEW_NEAR_M)
             out["reproj_side_px"], out["reproj_side_std_px"] = reprojection_error(kp, kg, side, seen)
+            if camera.extrinsics.ndim == 3:  # a moving camera: the camera-frame metrics too
+                kpc = world_to_camera(pred_camera if pred_camera is not None else camera, kp)
+                kgc = world_to_camera(camera, kg)
+                out["mpjpe_cam_mm"] = mpjpe(kpc, kgc, jm, align="root", root=root)
+                out["root_err_cam_mm"] = root_translation_error(kpc, kgc, jm, root=root)
+                out["accel_err_cam_m_s2"] = acceleration_error(kpc, kgc, fps, jm)
     if kp is not None:
         out["jitter_km_s3"] = jitter(kp, fps, m)
 
@@ -1216,10 +1231,16 @@ def _metric_values(p, g, m, fps, camera, root, pred_mass, gt_mass) -> dict[str, 
 _quantities = jax.jit(motion_quantities, static_argnames="layout")
 
 
-def clip_camera(clip) -> Camera:
+def clip_camera(clip, length: int | None = None) -> Camera:
     """The input camera of a :class:`~jmocap.data.clip.Clip` (the default extrinsics,
-    :func:`jmocap.camera.default_extrinsics`, when the clip has none, as the methods assume)."""
+    :func:`jmocap.camera.default_extrinsics`, when the clip has none, as the methods assume);
+    a moving camera's extrinsics are its track (T, 4, 4), frame t seen by camera t, padded to
+    ``length`` frames with its last."""
     ext = clip.extrinsics if clip.extrinsics is not None else default_extrinsics()
+    if clip.camera_track is not None:
+        ext = clip.camera_track
+        if length is not None and length > len(ext):
+            ext = np.concatenate([ext, np.broadcast_to(ext[-1], (length - len(ext), 4, 4))])
     f32 = np.float32
     return Camera(jnp.asarray(np.asarray(clip.intrinsics, f32)), jnp.asarray(np.asarray(clip.image_size, f32)),
                   jnp.asarray(np.asarray(ext, f32)))

@@ -290,13 +290,14 @@ class Reconstructor:
         # every row's keypoints over the whole plan at once, history in front and lookahead
         # behind; chunk c is then the slice [start_c, start_c + H + L_c + A) (chunk_frames of
         # each chunk)
-        kp, real = [], []
+        kp, real, track = [], [], []
         for c in rows:
             idx, r = chunk_frames(c.num_frames, 0, sum(plan), H, A)
             kp.append(np.asarray(c.keypoints, np.float32)[idx])
             real.append(r)
-        kp, real = np.stack(kp), np.stack(real)
-        whole = _stack([ClipInputs.from_clip(c).replace(keypoints=None, mask=None) for c in rows])
+            track.append(ClipInputs.from_clip(c).camera_track[idx])  # every frame's camera
+        kp, real, track = np.stack(kp), np.stack(real), np.stack(track)
+        whole = _stack([ClipInputs.from_clip(c).replace(keypoints=None, mask=None, camera_track=None) for c in rows])
         models = _stack([subject_model(c) for c in rows])
         zero = self.method.init_carry(subject_model(rows[0]), self.config)
         carry = jax.tree.map(lambda a: np.zeros((G, *np.shape(a)), np.float32), zero)
@@ -304,11 +305,11 @@ class Reconstructor:
         fetched, pending, start = [], None, 0
         for c, length in enumerate(plan):
             window = slice(start, start + H + length + A)
-            keypoints, mask, first = jax.device_put(
-                (kp[:, window], real[:, window], np.full(G, c == 0)), self._rows
+            keypoints, mask, cams, first = jax.device_put(
+                (kp[:, window], real[:, window], track[:, window], np.full(G, c == 0)), self._rows
             )
             carry, res = reconstruct_chunks(
-                self.params, models, whole.replace(keypoints=keypoints, mask=mask), carry, first,
+                self.params, models, whole.replace(keypoints=keypoints, mask=mask, camera_track=cams), carry, first,
                 config=self._config, method=self.method.name, history=H, tile=self.tile, groups=len(self.devices),
             )
             if pending is not None:  # fetch the previous chunk while this one runs

@@ -28,7 +28,8 @@ height_m, mass_kg  float64    ()            the character's height and mass
 layout             str        ()            keypoint layout
 intrinsics         float64    (4,)          fx, fy, cx, cy
 image_size         int64      (2,)          width, height
-extrinsics         float64    (4, 4)        world -> camera
+extrinsics         float64    (4, 4)        world -> camera (a moving camera's first frame)
+camera_track       float64    (T, 4, 4)     optional: a moving camera's world -> camera per frame
 extrinsics_source  str        ()            where ``extrinsics`` came from: ``input`` (clip or
                                             sidecar), ``estimated`` (the floor seen from the
                                             person, jmocap.methods.floor), ``default``
@@ -170,6 +171,7 @@ def result_arrays(
         "intrinsics": np.asarray(clip.intrinsics, np.float64),
         "image_size": np.asarray(clip.image_size, np.int64),
         "extrinsics": np.asarray(extr, np.float64),
+        **({"camera_track": np.asarray(clip.camera_track, np.float64)} if clip.camera_track is not None else {}),
         "assumed": np.array(json.dumps(list(assumed))),
         "warnings": np.array(json.dumps(list(warnings))),
         "height_source": np.array(height_source if height_source is not None
@@ -250,6 +252,12 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
         ):
             raise FormatError(f"{path}: field 'diagnostics' is not a JSON object of numbers")
         out["diagnostics"] = diag
+    out["camera_track"] = None
+    if "camera_track" in data:
+        a = data["camera_track"]
+        if a.shape != (T, 4, 4) or a.dtype.kind not in "fiu":
+            raise FormatError(f"{path}: field 'camera_track' has shape {a.shape} ({a.dtype}), expected ({T}, 4, 4) numbers")
+        out["camera_track"] = a
     for key, shape in _STATIC.items():
         if key in data:
             a = data[key]

@@ -429,7 +429,8 @@ def render_frames(
         missing), drawn over the ``camera`` view (added to ``views`` if absent). Needs
         ``camera``; ``layout`` (or J = 25, BODY_25) gives the bones, otherwise points only.
       camera: a :class:`jmocap.camera.Camera` (unbatched): the ``"camera"`` view renders from
-        its exact pose and intrinsics, the input image letterboxed into the panel.
+        its exact pose and intrinsics, the input image letterboxed into the panel; a moving
+        camera's extrinsics are (T, 4, 4), frame t rendered from camera t.
       views: model camera names (the humanoid has ``front`` and ``side``, tracking the centre
         of mass) and/or ``"camera"``, left to right.
       size: (width, height) of each view in pixels.
@@ -477,8 +478,9 @@ def render_frames(
         intr = np.asarray(camera.intrinsics, np.float64)
         isize = np.asarray(camera.image_size, np.float64)
         extr = np.asarray(camera.extrinsics, np.float64)
-        if intr.shape != (4,) or isize.shape != (2,) or extr.shape != (4, 4):
-            raise ValueError(f"{where}: camera must be unbatched, got intrinsics {intr.shape}")
+        if intr.shape != (4,) or isize.shape != (2,) or extr.shape not in ((4, 4), (T, 4, 4)):
+            raise ValueError(f"{where}: camera must be unbatched (its extrinsics one (4, 4) or one per frame, "
+                             f"(T, 4, 4)), got intrinsics {intr.shape}, extrinsics {extr.shape}")
         k, ox, oy = _pinhole_fit(isize, W, H)
     bones: list[tuple[int, int]] = []
     if kp is not None:
@@ -517,7 +519,7 @@ def render_frames(
                 for v in views:
                     if v == "camera":
                         renderer.update_scene(d, camera=free_cam)
-                        _set_pinhole(renderer.scene, intr, isize, extr, W, H)
+                        _set_pinhole(renderer.scene, intr, isize, extr[t] if extr.ndim == 3 else extr, W, H)
                     else:
                         renderer.update_scene(d, camera=cam_ids[v])
                     scene = renderer.scene
@@ -868,7 +870,8 @@ def result_camera(result: dict):
 
     fx, fy, cx, cy = (float(v) for v in result["intrinsics"])
     w, h = (float(v) for v in result["image_size"])
-    return Camera.from_intrinsics(fx, fy, cx, cy, w, h, extrinsics=result.get("extrinsics"), dtype=np.float64)
+    extrinsics = result.get("camera_track") if result.get("camera_track") is not None else result.get("extrinsics")
+    return Camera.from_intrinsics(fx, fy, cx, cy, w, h, extrinsics=extrinsics, dtype=np.float64)
 
 
 def render_result(

@@ -18,6 +18,8 @@ keypoints             float32     (T, J, 3)   x, y pixels, confidence in [0, 1] 
 intrinsics            float64     (4,)        fx, fy, cx, cy (pixels)
 image_size            int64       (2,)        width, height (pixels)
 extrinsics            float64     (4, 4)      optional; world->camera ``[R t; 0 1]``, OpenCV axes
+                                              (with a camera track: its first frame)
+camera_track          float64     (T, 4, 4)   optional; per-frame world->camera of a moving camera
 gt_q                  float32     (T, nq)     optional; MuJoCo qpos (root pos, quat wxyz, hinges)
 gt_qd                 float32     (T, nv)     optional; MuJoCo qvel, nv = nq - 1
 gt_keypoints3d        float32     (T, J, 3)   optional; world-frame joints in the clip's layout
@@ -65,9 +67,15 @@ GT_FIELDS = ("gt_q", "gt_qd", "gt_keypoints3d", "gt_contacts", "gt_tau", "gt_grf
 # trailing shapes of the fixed-shape ground-truth fields
 _GT_SHAPES = {"gt_contacts": (NUM_CONTACTS,), "gt_grf": (NUM_CONTACTS, 3), "gt_residual": (6,),
               "gt_foot_force": (2, 3), "gt_cop": (2, 3), "gt_free_moment": (2,)}
-_ARRAY_FIELDS = ("keypoints", "intrinsics", "image_size", "extrinsics") + GT_FIELDS
+_ARRAY_FIELDS = ("keypoints", "intrinsics", "image_size", "extrinsics", "camera_track") + GT_FIELDS
 #: the largest image width / height accepted (pixels; int32, like the arrays downstream)
 MAX_IMAGE_SIDE = 2**31 - 1
+#: the fastest a camera track may move between two frames: its centre (m/s) and its rotation
+#: (degrees/s); a faster step is a discontinuity (a cut, a lost SLAM track), refused with its
+#: frame. A walking hand-held camera moves at 1-2 m/s and pans at up to ~200 deg/s, a fast
+#: whip pan ~600 deg/s, a drone 10-20 m/s.
+CAMERA_MAX_SPEED_MPS = 50.0
+CAMERA_MAX_TURN_DPS = 1500.0
 
 
 class ClipFormatError(FormatError):
@@ -92,7 +100,8 @@ class Clip:
     keypoints: np.ndarray  # (T, J, 3) float32
     intrinsics: np.ndarray  # (4,) float64
     image_size: np.ndarray  # (2,) int64
-    extrinsics: np.ndarray | None = None  # (4, 4) float64
+    extrinsics: np.ndarray | None = None  # (4, 4) float64 (with a camera track: its first frame)
+    camera_track: np.ndarray | None = None  # (T, 4, 4) float64: a moving camera's world->camera
     gt_q: np.ndarray | None = None
     gt_qd: np.ndarray | None = None
     gt_keypoints3d: np.ndarray | None = None
@@ -144,8 +153,23 @@ class Clip:
         return 100.0 * np.linalg.norm(self.gt_residual[:, :3], axis=1) / (self.mass_kg * GRAVITY)
 
     @property
+    def moving_camera(self) -> bool:
+        """Whether the clip has a per-frame camera track (``camera_track``)."""
+        return self.camera_track is not None
+
+    def world_to_camera(self) -> np.ndarray | None:
+        """(T, 4, 4) world->camera of every frame: the camera track, or the static extrinsics
+        repeated; None when the clip has no extrinsics."""
+        if self.camera_track is not None:
+            return self.camera_track
+        if self.extrinsics is None:
+            return None
+        return np.broadcast_to(self.extrinsics, (self.num_frames, 4, 4))
+
+    @property
     def camera(self):
-        """The clip's :class:`jmocap.camera.Camera` (identity extrinsics when none stored)."""
+        """The clip's :class:`jmocap.camera.Camera` (identity extrinsics when none stored); for a
+        moving camera, its first frame's (what a method that assumes a static camera uses)."""
         from jmocap.camera import Camera
 
         fx, fy, cx, cy = (float(v) for v in self.intrinsics)
@@ -178,9 +202,11 @@ class Clip:
         """Frames ``[start, stop)`` of every per-frame field."""
         changes = {
             k: getattr(self, k)[start:stop]
-            for k in ("keypoints",) + GT_FIELDS
+            for k in ("keypoints", "camera_track") + GT_FIELDS
             if getattr(self, k) is not None
         }
+        if self.camera_track is not None:  # the static extrinsics are the track's first frame
+            changes["extrinsics"] = changes["camera_track"][0]
         return self.replace(**changes)
 
 
@@ -252,6 +278,47 @@ def _extrinsics_problem(E: np.ndarray) -> str | None:
         or np.linalg.det(R) < 0
     ):
         return "must be a rigid transform [R t; 0 0 0 1] with R a rotation"
+    return None
+
+
+def _rigid_frames(E: np.ndarray) -> np.ndarray:
+    """(T,) bool: which of the (T, 4, 4) transforms are not rigid (:func:`_extrinsics_problem`'s
+    rule, vectorised)."""
+    R = E[:, :3, :3]
+    RRt = np.einsum("tij,tkj->tik", R, R)
+    return (np.abs(E[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(-1) > 1e-6) | (
+        np.abs(RRt - np.eye(3)).reshape(len(E), -1).max(-1) > 1e-4) | (np.linalg.det(R) < 0)
+
+
+def camera_track_problem(track: np.ndarray, fps: float) -> str | None:
+    """What is wrong with a (T, 4, 4) float64 camera track at ``fps`` (None when nothing): a
+    non-finite value, a transform that is not rigid (a scaled, sheared or reflected rotation)
+    or a step between two frames faster than :data:`CAMERA_MAX_SPEED_MPS` /
+    :data:`CAMERA_MAX_TURN_DPS` (a cut), each named with its first frame."""
+    if track.ndim != 3 or track.shape[1:] != (4, 4):
+        return f"must have shape (T, 4, 4), got {track.shape}"
+    bad = ~np.isfinite(track)
+    if bad.any():
+        return f"has non-finite values, first at frame {_first_bad_frame(bad)}"
+    bad = _rigid_frames(track)
+    if bad.any():
+        f = int(np.argmax(bad))
+        return (f"is not a rigid transform [R t; 0 0 0 1] with R a rotation at frame {f} "
+                f"(a camera track's rotations must be orthonormal with determinant +1)")
+    if len(track) < 2:
+        return None
+    R = track[:, :3, :3]
+    centre = -np.einsum("tji,tj->ti", R, track[:, :3, 3])  # -R^T t
+    step = np.linalg.norm(np.diff(centre, axis=0), axis=-1) * fps
+    rel = np.einsum("tij,tkj->tik", R[1:], R[:-1])  # R_{t+1} R_t^T
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    turn = np.degrees(np.arccos(cos)) * fps
+    for name, v, lim, unit in (("moves", step, CAMERA_MAX_SPEED_MPS, "m/s"),
+                               ("turns", turn, CAMERA_MAX_TURN_DPS, "deg/s")):
+        if (v > lim).any():
+            f = int(np.argmax(v > lim))
+            return (f"{name} at {v[f]:.4g} {unit} between frames {f} and {f + 1} (at {fps:g} fps; at most "
+                    f"{lim:g} {unit}): a discontinuity (a cut or a lost track); split the clip there")
     return None
 
 
@@ -361,6 +428,23 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
         if problem is not None:
             raise ClipFormatError(f"{where}: field 'extrinsics' {problem}")
         out["extrinsics"] = E
+    if values.get("camera_track") is not None:
+        track = _as_array(values, "camera_track", np.float64, where)
+        if track.ndim != 3 or track.shape[0] != T:
+            raise ClipFormatError(
+                f"{where}: field 'camera_track' must have shape ({T}, 4, 4) (one world->camera per frame "
+                f"of 'keypoints'), got {track.shape}")
+        problem = camera_track_problem(track, fps)
+        if problem is not None:
+            raise ClipFormatError(f"{where}: field 'camera_track' {problem}")
+        E = out.get("extrinsics")
+        if E is None:
+            out["extrinsics"] = track[0].copy()
+        elif not np.allclose(E, track[0], atol=1e-6):
+            raise ClipFormatError(
+                f"{where}: field 'extrinsics' differs from the first frame of 'camera_track' (a clip "
+                f"with a moving camera stores its first frame's as 'extrinsics', or none: replace both)")
+        out["camera_track"] = track
 
     # ground truth
     out.update(validate_ground_truth(values, T, J, where))
@@ -562,6 +646,8 @@ def is_clip_file(path: str | os.PathLike) -> bool:
 
 
 __all__ = [
+    "CAMERA_MAX_SPEED_MPS",
+    "CAMERA_MAX_TURN_DPS",
     "FORMAT",
     "GT_FIELDS",
     "MAX_IMAGE_SIDE",
@@ -569,6 +655,7 @@ __all__ = [
     "ClipFormatError",
     "FormatError",
     "atomic_write_npz",
+    "camera_track_problem",
     "clip_from_arrays",
     "clip_to_arrays",
     "is_clip_file",

@@ -255,7 +255,7 @@ def fitted_frames(model: Model, tp: S.TargetPose, inputs: ClipInputs, config: An
         config = TO.TrajOptConfig(layout=config.layout, canonicalise=config.canonicalise, nets=config.nets)
     dtype = tp.q_hat.dtype
     E = jnp.asarray(default_extrinsics(), dtype)
-    inputs = inputs.replace(extrinsics=E)
+    inputs = inputs.with_static_camera(E)
     R, t = E[:3, :3], E[:3, 3]
     q_hat = S.root_in_world(tp.q_hat, tp.rot_cam, tp.trans_cam, E)
     no_floor = config.replace(w_floor=0.0, w_accel=0.0, w_contact_vel=0.0)

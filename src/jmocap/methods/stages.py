@@ -173,16 +173,17 @@ def target_pose(
     dt_cam = tp.apply(variables, causal_windows(feats, W), method=TPNet.translation, **kw)
     trans_cam = t_ls + dt_cam
 
-    q_hat = root_in_world(q_rr, rot_cam, trans_cam, jnp.asarray(inputs.extrinsics, dtype))
+    q_hat = root_in_world(q_rr, rot_cam, trans_cam, jnp.asarray(inputs.world_to_camera(), dtype))
     return TargetPose(q_hat, logits, rot_cam, trans_cam, t_ls, p_rr)
 
 
 def root_in_world(q: Array, rot_cam: Array, trans_cam: Array, extrinsics: Array) -> Array:
     """``q`` (T, nq) with its root set from a camera-frame orientation (T, 3, 3) and position
-    (T, 3), moved to the world of ``extrinsics`` (``X_c = R X_w + t``)."""
-    R, t = extrinsics[:3, :3], extrinsics[:3, 3]
-    rot_w = jnp.matmul(R.T, rot_cam)  # R^T R_cam
-    pos_w = (trans_cam - t) @ R  # R^T (t_cam - t), row-vector form
+    (T, 3), moved to the world of ``extrinsics`` (``X_c = R X_w + t``): one camera (4, 4) or
+    one per frame (T, 4, 4), a moving camera's track."""
+    R, t = extrinsics[..., :3, :3], extrinsics[..., :3, 3]
+    rot_w = jnp.matmul(jnp.swapaxes(R, -1, -2), rot_cam)  # R^T R_cam
+    pos_w = jnp.einsum("...ji,...j->...i", R, trans_cam - t)  # R^T (t_cam - t)
     return q.at[:, 0:3].set(pos_w).at[:, 3:7].set(mat_to_quat(rot_w))
 
 

@@ -222,7 +222,7 @@ class Problem:
 
     keypoints: Array  # (T, J, 3) pixels and confidence
     intrinsics: Array
-    extrinsics: Array
+    extrinsics: Array  # (T, 4, 4) world -> camera of every frame (a static camera repeated)
     unit_px: Array  # () one percent of the person's height in the image, pixels
     fps: Array
     mask: Array  # (T,) bool
@@ -280,9 +280,10 @@ def person_height_px_causal(keypoints: Array, mask: Array, frames: int) -> Array
 
 
 def root_depth(q: Array, extrinsics: Array) -> Array:
-    """(T,) the root's depth in the camera frame (m): the third row of ``[R t] (x, 1)``."""
+    """(T,) the root's depth in the camera frame (m): the third row of ``[R t] (x, 1)``, with
+    one camera (4, 4) or one per frame (T, 4, 4)."""
     E = jnp.asarray(extrinsics, q.dtype)
-    return q[:, :3] @ E[2, :3] + E[2, 3]
+    return jnp.sum(q[:, :3] * E[..., 2, :3], -1) + E[..., 2, 3]
 
 
 def to_depth(q: Array, extrinsics: Array, depth: Array) -> Array:
@@ -290,12 +291,12 @@ def to_depth(q: Array, extrinsics: Array, depth: Array) -> Array:
     depths are ``depth`` (T,): the root's image point stays; frames whose root is behind or at
     the camera (no such ray) move straight along the optical axis instead."""
     E = jnp.asarray(extrinsics, q.dtype)
-    R, t = E[:3, :3], E[:3, 3]
-    xc = q[:, :3] @ R.T + t
+    R, t = E[..., :3, :3], E[..., :3, 3]
+    xc = jnp.einsum("...ij,...j->...i", R, q[:, :3]) + t
     z = xc[:, 2:3]
     ok = z > 1e-3
     moved = jnp.where(ok, xc * depth[:, None] / jnp.where(ok, z, 1.0), xc.at[:, 2].set(depth))
-    return q.at[:, :3].set((moved - t) @ R)
+    return q.at[:, :3].set(jnp.einsum("...ji,...j->...i", R, moved - t))
 
 
 def _rts_smooth(y: Array, r: Array, accel: Array) -> Array:
@@ -393,7 +394,7 @@ def kinematic_terms(model: Model, q: Array, geo: FrameGeometry, prob: Problem, c
     """The kinematic energies of a trajectory (see the module docstring), each a frame mean."""
     layout = get_layout(config.layout)
     m = prob.mask.astype(q.dtype)
-    cam = Camera(prob.intrinsics, jnp.zeros(2, q.dtype), prob.extrinsics)
+    cam = Camera(prob.intrinsics, jnp.zeros(2, q.dtype), prob.extrinsics)  # frame t seen by camera t
     uv = project(cam, geo.keypoints3d)
     conf = prob.keypoints[..., 2]
     r2 = jnp.sum((uv - prob.keypoints[..., :2]) ** 2, -1) / prob.unit_px**2
@@ -647,10 +648,10 @@ def diagonal_scale(model: Model, x: Trajectory, prob: Problem, config: TrajOptCo
     initial Hessian cannot absorb in a few dozen iterations)."""
     layout = get_layout(config.layout)
     roots = np.asarray(layout.root_indices)
-    cam = Camera(prob.intrinsics, jnp.zeros(2, x.hinges.dtype), prob.extrinsics)
     T = x.root_pos.shape[0]
 
-    def residual(v, base, kp, prior_rr):
+    def residual(v, base, kp, prior_rr, E):
+        cam = Camera(prob.intrinsics, jnp.zeros(2, x.hinges.dtype), E)
         xt = Trajectory(v[:3][None], v[3:6][None], v[6:][None])
         q = to_q(model, xt, base[None])[0]
         p3 = P.keypoints(model, q, config.layout)
@@ -663,7 +664,7 @@ def diagonal_scale(model: Model, x: Trajectory, prob: Problem, config: TrajOptCo
         return jnp.concatenate([jnp.sqrt(config.w_reproj) * r1, r2, r3])
 
     v = jnp.concatenate([x.root_pos, x.root_rot, x.hinges], -1)
-    J = jax.vmap(jax.jacfwd(residual))(v, prob.base_quat, prob.keypoints, prob.prior_rr)  # (T, R, n)
+    J = jax.vmap(jax.jacfwd(residual))(v, prob.base_quat, prob.keypoints, prob.prior_rr, prob.extrinsics)  # (T, R, n)
     d = jnp.sum(J * J, 1)  # (T, n)
     d = d + 1e-3 * jnp.mean(d, -1, keepdims=True) + 1e-6
     s = jnp.sqrt(T / d)  # the objective is a frame mean: its curvature is d / T
@@ -781,14 +782,15 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
     the same result, faster on a CPU, whose cache then holds a tile's working set
     (docs/performance.md). 0 fits all frames at once.
     Returns (T, nq)."""
-    cam = Camera(prob.intrinsics, jnp.zeros(2, q.dtype), prob.extrinsics)
     conf = prob.keypoints[..., 2]
     target = prob.keypoints[..., :2]
     if depth is not None:
         q = to_depth(q, prob.extrinsics, jnp.exp(depth))
     units = jnp.broadcast_to(prob.unit_px, q.shape[:1])  # the clip's scale, or one per frame
 
-    def solve_frame(qt, prior, kp, cf, unit, dz, lab):
+    def solve_frame(qt, prior, kp, cf, unit, E, dz, lab):
+        cam = Camera(prob.intrinsics, jnp.zeros(2, q.dtype), E)
+
         def robust(uv, c):
             r2 = jnp.sum((uv - kp) ** 2, -1) / unit**2
             return config.w_reproj * jnp.sum(cf * geman_mcclure(r2, c)), r2
@@ -829,14 +831,14 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
         qt, _, _ = jax.lax.fori_loop(0, iterations, step, (qt, linearise(qt), jnp.asarray(1e-3, qt.dtype)))
         return qt
 
-    args = (q, prob.prior_rr, target, conf, units, depth, contacts)
+    args = (q, prob.prior_rr, target, conf, units, prob.extrinsics, depth, contacts)
     if tile > 0:
         # in tiles of ``tile`` frames (times the clips of an enclosing vmap): the fit is bound by
         # memory traffic (each LM step streams every frame's Jacobians, normal matrix and
         # column-by-column Cholesky), which stays in the CPU's cache for a tile
         fitted = jax.lax.map(lambda a: solve_frame(*a), args, batch_size=tile)
     else:
-        fitted = jax.vmap(solve_frame, in_axes=(0, 0, 0, 0, 0, None if depth is None else 0,
+        fitted = jax.vmap(solve_frame, in_axes=(0, 0, 0, 0, 0, 0, None if depth is None else 0,
                                                 None if contacts is None else 0))(*args)
     # frames without enough evidence: from their neighbours
     T = q.shape[0]
@@ -882,7 +884,7 @@ def problem(model: Model, inputs: ClipInputs, q_hat: Array, contacts: Array, con
     unit = jnp.maximum(person_height_px(kp, mask) / 100.0, config.noise_unit * keypoint_jitter_px(kp, mask))
     return Problem(
         keypoints=kp, intrinsics=jnp.asarray(inputs.intrinsics, q_hat.dtype),
-        extrinsics=jnp.asarray(inputs.extrinsics, q_hat.dtype),
+        extrinsics=jnp.asarray(inputs.world_to_camera(), q_hat.dtype),
         unit_px=unit, fps=jnp.asarray(inputs.fps, q_hat.dtype), mask=mask,
         length=jnp.sum(mask.astype(jnp.int32)), base_quat=base, prior_rr=prior_rr,
         contacts=(contacts > config.contact_threshold).astype(q_hat.dtype) * mask[:, None], anchor_kp=prior,
@@ -1037,7 +1039,6 @@ def fit_clip(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) 
     probs = probs.replace(mask=local, length=jnp.sum(local.astype(jnp.int32), -1),
                           unit_px=jnp.broadcast_to(prob.unit_px, (len(starts),)),
                           intrinsics=jnp.broadcast_to(prob.intrinsics, (len(starts), *prob.intrinsics.shape)),
-                          extrinsics=jnp.broadcast_to(prob.extrinsics, (len(starts), *prob.extrinsics.shape)),
                           fps=jnp.broadcast_to(prob.fps, (len(starts),)))
     fits = jax.lax.map(lambda a: fit(model, a[0], a[1], config), (probs, q_init[idx]))
     wnp = window_weights(T, starts, W, O)

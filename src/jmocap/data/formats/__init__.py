@@ -56,6 +56,7 @@ from jmocap.data.formats.arrays import read_keypoint_array
 from jmocap.data.formats.camera_file import (
     SIDECAR_KEYS,
     Y_UP_TO_Z_UP,
+    camera_track_of,
     distort_normalized,
     find_sidecar,
     read_camera_json,
@@ -216,6 +217,10 @@ def read_clip(
                 v = arg if arg is not None else side.get(key)
                 if v is not None:
                     changes[key] = v
+            if extrinsics is None and side.get("camera_track") is not None:  # a moving camera
+                changes["camera_track"] = camera_track_of(side, camera_json, clip.num_frames)
+            elif "extrinsics" in changes:  # a static camera given for the clip: it replaces any track
+                changes["camera_track"] = None
             if name is not None:
                 changes["name"] = name
             if side.get("distortion") is not None:  # lens distortion: to the ideal pinhole's pixels
@@ -237,6 +242,7 @@ def read_clip(
 
 
 __all__ = [
+    "camera_track_of",
     "Candidate",
     "clean_keypoints",
     "CLIP_FORMAT",

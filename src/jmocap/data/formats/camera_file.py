@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from jmocap.data.clip import MAX_IMAGE_SIDE, Clip, _extrinsics_problem
+from jmocap.data.clip import MAX_IMAGE_SIDE, Clip, _extrinsics_problem, _rigid_frames
 from jmocap.data.formats.common import (
     _atomic_write_text,
     _ferr,
@@ -128,11 +128,30 @@ def find_sidecar(path: str | os.PathLike) -> Path | None:
     return None
 
 
-def _matrix(data, key, shape, path) -> np.ndarray:
-    a = _nested_numbers(data[key], len(shape), path, key) if len(shape) > 1 else np.asarray(
-        [_number(v, path, key) for v in _list(data[key], path, key)], np.float64)
-    if a.shape != shape or not np.isfinite(a).all():
-        raise _ferr(path, f"must be {'x'.join(map(str, shape))} finite numbers, got shape {a.shape}", field=key)
+def _depth(v) -> int:
+    """How deeply ``v`` nests JSON arrays (along first elements): 0 for a number."""
+    d = 0
+    while isinstance(v, list) and v:
+        v, d = v[0], d + 1
+    return d
+
+
+def _matrix(data, key, shape, path, frames: bool = False) -> np.ndarray:
+    """``data[key]`` as finite numbers of ``shape``; with ``frames``, one per frame: (T, *shape)."""
+    ndim = len(shape) + int(frames)
+    if ndim == 1:
+        a = np.asarray([_number(v, path, key) for v in _list(data[key], path, key)], np.float64)
+    else:
+        a = _nested_numbers(data[key], ndim, path, key)
+    want = ", ".join(map(str, ("T",) * int(frames) + tuple(shape)))
+    if a.shape[int(frames):] != tuple(shape) or (frames and a.shape[0] == 0) or a.ndim != ndim:
+        raise _ferr(path, f"must have shape ({want}), got {a.shape}", field=key)
+    bad = ~np.isfinite(a)
+    if bad.any():
+        if frames:
+            f = int(np.argmax(bad.reshape(len(a), -1).any(-1)))
+            raise _ferr(path, "must be finite numbers", frame=f, field=key)
+        raise _ferr(path, "must be finite numbers", field=key)
     return a
 
 
@@ -142,14 +161,42 @@ def _list(v, path, key):
     return v
 
 
-def _rotation(R: np.ndarray, path, key) -> np.ndarray:
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+def _check_rigid(E: np.ndarray, path, key, frames: bool) -> None:
+    """A :class:`FormatError` naming the file, the key and (for a track) the first frame where
+    ``E`` (4x4 or T x 4 x 4) is not a rigid transform."""
+    if not frames:
+        problem = _extrinsics_problem(E)
+        if problem is not None:
+            raise _ferr(path, problem, field=key)
+        return
+    bad = _rigid_frames(E)
+    if bad.any():
+        raise _ferr(path, "must be a rigid transform [R t; 0 0 0 1] with R a rotation (orthonormal, determinant +1)",
+                    frame=int(np.argmax(bad)), field=key)
+
+
+def _rotation(R: np.ndarray, path, key, frames: bool = False) -> np.ndarray:
+    E = np.zeros(R.shape[:-2] + (4, 4))
+    E[..., :3, :3] = R
+    E[..., 3, 3] = 1.0
+    if frames:
+        bad = _rigid_frames(E)
+        if bad.any():
+            raise _ferr(path, "must be a rotation matrix (orthonormal, determinant +1)", frame=int(np.argmax(bad)),
+                        field=key)
+    elif _extrinsics_problem(E) is not None:
         raise _ferr(path, "must be a rotation matrix (orthonormal, determinant +1)", field=key)
     return R
 
 
+# how deeply each extrinsics key nests for one camera (a track nests one level more)
+_STATIC_DEPTH = {"extrinsics": 2, "cam_to_world": 2, "R": 2, "R_world_to_cam": 2, "camera_rotation": 2,
+                 "rvec": 1, "t": 1, "tvec": 1, "t_world_to_cam": 1, "camera_position": 1}
+
+
 def _world_to_camera(data, path) -> tuple[np.ndarray | None, str | None]:
-    """The 4x4 world -> camera transform of whichever extrinsics form ``data`` has."""
+    """The world -> camera transform of whichever extrinsics form ``data`` has: (4, 4) for one
+    camera, (T, 4, 4) for a camera track (every key of the form with a leading frame axis)."""
     present = [k for k in _EXTRINSIC_KEYS if k in data]
     if not present:
         return None, None
@@ -165,32 +212,43 @@ def _world_to_camera(data, path) -> tuple[np.ndarray | None, str | None]:
         keys = sorted({k for keys, _ in forms for k in keys})
         raise _ferr(path, f"gives the extrinsics more than one way ({', '.join(keys)}): give one", field=keys[0])
     keys, name = forms[0]
-    E = np.eye(4)
-    if name == "extrinsics":
-        E = _nested_numbers(data["extrinsics"], 2, path, "extrinsics")
-        problem = _extrinsics_problem(E)
-        if problem is not None:
-            raise _ferr(path, problem, field="extrinsics")
+    per_frame = [_depth(data[k]) > _STATIC_DEPTH[k] for k in keys]
+    frames = per_frame[0]
+    if any(p != frames for p in per_frame):
+        raise _ferr(path, f"gives one camera in {keys[per_frame.index(False)]!r} but one per frame in "
+                    f"{keys[per_frame.index(True)]!r}: give both for one camera, or both per frame", field=keys[0])
+    if frames:
+        lengths = {k: len(data[k]) for k in keys}
+        if len(set(lengths.values())) > 1:
+            raise _ferr(path, "the camera track's keys have different numbers of frames: "
+                        + ", ".join(f"{k} {n}" for k, n in lengths.items()), field=keys[0])
+    if name in ("extrinsics", "cam_to_world"):
+        M = _matrix(data, name, (4, 4), path, frames)
+        _check_rigid(M, path, name, frames)
+        if name == "extrinsics":
+            return M, name
+        Rc, c = M[..., :3, :3], M[..., :3, 3]
+    elif name == "camera pose":
+        Rc = _rotation(_matrix(data, "camera_rotation", (3, 3), path, frames), path, "camera_rotation", frames)
+        c = _matrix(data, "camera_position", (3,), path, frames)
+    else:
+        rkey, tkey = keys
+        if rkey == "rvec":
+            rv = _matrix(data, "rvec", (3,), path, frames)
+            R = np.stack([rodrigues(r) for r in rv]) if frames else rodrigues(rv)
+        else:
+            R = _rotation(_matrix(data, rkey, (3, 3), path, frames), path, rkey, frames)
+        E = np.zeros(R.shape[:-2] + (4, 4))
+        E[..., :3, :3] = R
+        E[..., :3, 3] = _matrix(data, tkey, (3,), path, frames)
+        E[..., 3, 3] = 1.0
         return E, name
-    if name == "cam_to_world":
-        P = _nested_numbers(data["cam_to_world"], 2, path, "cam_to_world")
-        problem = _extrinsics_problem(P)
-        if problem is not None:
-            raise _ferr(path, problem, field="cam_to_world")
-        E[:3, :3] = P[:3, :3].T
-        E[:3, 3] = -P[:3, :3].T @ P[:3, 3]
-        return E, name
-    if name == "camera pose":
-        Rc = _rotation(_matrix(data, "camera_rotation", (3, 3), path), path, "camera_rotation")
-        c = _matrix(data, "camera_position", (3,), path)
-        E[:3, :3] = Rc.T
-        E[:3, 3] = -Rc.T @ c
-        return E, name
-    rkey, tkey = keys
-    R = rodrigues(_matrix(data, "rvec", (3,), path)) if rkey == "rvec" else _rotation(
-        _matrix(data, rkey, (3, 3), path), path, rkey)
-    E[:3, :3] = R
-    E[:3, 3] = _matrix(data, tkey, (3,), path)
+    # a camera pose (rotation camera -> world, centre): its inverse
+    E = np.zeros(Rc.shape[:-2] + (4, 4))
+    RcT = np.swapaxes(Rc, -1, -2)
+    E[..., :3, :3] = RcT
+    E[..., :3, 3] = -np.einsum("...ij,...j->...i", RcT, c)
+    E[..., 3, 3] = 1.0
     return E, name
 
 
@@ -198,7 +256,8 @@ def read_camera_json(path: str | os.PathLike) -> dict[str, Any]:
     """Read a camera sidecar in any of the conventions of the module docstring.
 
     Returns ``{"intrinsics": (4,), "image_size": (w, h), "extrinsics": (4, 4) world -> camera
-    in jmocap's z-up world | None, "distortion": (k,) | None, "fps": float | None, "height_m":
+    in jmocap's z-up world | None, "camera_track": (T, 4, 4) | None (a moving camera: every
+    extrinsics key given per frame; "extrinsics" is then its first frame), "distortion": (k,) | None, "fps": float | None, "height_m":
     float | None, "mass_kg": float | None, "convention": str}`` (``convention`` names the
     extrinsics form and world read, for the record).
 
@@ -263,14 +322,14 @@ def read_camera_json(path: str | os.PathLike) -> dict[str, Any]:
         W[:3, :3] = A.T
         W[:3, 3] = A.T @ np.array([0.0, 0.0, floor])
         E = E @ W
-        problem = _extrinsics_problem(E)
-        if problem is not None:  # pragma: no cover - a product of rigid transforms is rigid
-            raise _ferr(path, problem, field="extrinsics")
     elif up != "z" or floor != 0.0:
         raise _ferr(path, "given without extrinsics (it changes only where the camera is)",
                     field="world_up" if up != "z" else "floor_height")
-    out["extrinsics"] = E
-    out["convention"] = f"{form or 'no extrinsics'}, {up}-up world" + (f", floor at {floor}" if floor else "")
+    track = E is not None and E.ndim == 3
+    out["extrinsics"] = E[0] if track else E
+    out["camera_track"] = E if track else None
+    out["convention"] = (f"{form or 'no extrinsics'}{' per frame (a camera track)' if track else ''}, {up}-up world"
+                         + (f", floor at {floor}" if floor else ""))
     fps = data.get("fps")
     if fps is not None:
         fps = _number(fps, path, "fps", positive=True)
@@ -279,6 +338,17 @@ def read_camera_json(path: str | os.PathLike) -> dict[str, Any]:
         v = data.get(key)
         out[key] = None if v is None else _number(v, path, key, positive=True)
     return out
+
+
+def camera_track_of(side: dict, path, frames: int) -> np.ndarray | None:
+    """The camera track (T, 4, 4) of a read sidecar ``side`` (:func:`read_camera_json`) for a
+    clip of ``frames`` frames; None for a static camera. A track of another length is a
+    :class:`FormatError` naming the sidecar ``path``."""
+    track = side.get("camera_track")
+    if track is not None and len(track) != frames:
+        raise _ferr(path, f"the camera track has {len(track)} frames but the clip has {frames}: one camera per "
+                    f"frame of the keypoints", field="extrinsics")
+    return track
 
 
 def write_camera_json(path: str | os.PathLike, clip: Clip) -> Path:
@@ -295,7 +365,9 @@ def write_camera_json(path: str | os.PathLike, clip: Clip) -> Path:
         "height": h,
         "fps": float(clip.fps),
     }
-    if clip.extrinsics is not None:
+    if clip.camera_track is not None:  # a moving camera: one world -> camera per frame
+        data["extrinsics"] = np.asarray(clip.camera_track, np.float64).tolist()
+    elif clip.extrinsics is not None:
         data["extrinsics"] = np.asarray(clip.extrinsics, np.float64).tolist()
     for key in ("height_m", "mass_kg"):  # the subject, when the clip knows it
         if getattr(clip, key, None) is not None:
@@ -307,6 +379,7 @@ def write_camera_json(path: str | os.PathLike, clip: Clip) -> Path:
 
 __all__ = [
     "SIDECAR_KEYS",
+    "camera_track_of",
     "Y_UP_TO_Z_UP",
     "distort_normalized",
     "find_sidecar",

@@ -18,7 +18,12 @@ import numpy as np
 
 from jmocap.camera import default_intrinsics
 from jmocap.data.clip import MAX_IMAGE_SIDE, Clip, FormatError
-from jmocap.data.formats.camera_file import read_camera_json, sidecar_path, undistort_points
+from jmocap.data.formats.camera_file import (
+    camera_track_of,
+    read_camera_json,
+    sidecar_path,
+    undistort_points,
+)
 from jmocap.data.formats.common import _number, _type_name
 
 DEFAULT_FPS = 30.0
@@ -107,6 +112,7 @@ class Keypoints2D:
             intr = default_intrinsics(*size)
             assumed.append("intrinsics")
         extr = pick(extrinsics, "extrinsics", self.extrinsics)
+        track = camera_track_of(side, camera_json, len(self.keypoints)) if extrinsics is None else None
         f = pick(fps, "fps", self.fps)
         if f is None:
             f = DEFAULT_FPS
@@ -132,6 +138,7 @@ class Keypoints2D:
                 intrinsics=intr,
                 image_size=np.asarray(size),
                 extrinsics=extr,
+                camera_track=track,
                 height_m=side.get("height_m"),
                 mass_kg=side.get("mass_kg"),
                 meta=meta,

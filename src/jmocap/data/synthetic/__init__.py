@@ -63,10 +63,12 @@ The package, one concern per module (each imports only the ones above it):
 from __future__ import annotations
 
 from jmocap.data.synthetic.cameras import (
+    MOVING_KINDS,
     CameraConfig,
     look_at_extrinsics,
     project_points,
     sample_camera,
+    sample_moving_camera,
 )
 from jmocap.data.synthetic.character import SIDES, Character, character, site_trajectories
 from jmocap.data.synthetic.clips import (
@@ -115,6 +117,7 @@ __all__ = [
     "GENERATOR",
     "GESTURES",
     "MOTION_KINDS",
+    "MOVING_KINDS",
     "SEGMENTS",
     "SIDES",
     "CameraConfig",
@@ -140,6 +143,7 @@ __all__ = [
     "motion_report",
     "project_points",
     "sample_camera",
+    "sample_moving_camera",
     "seg_bend",
     "seg_crouch",
     "seg_dance",

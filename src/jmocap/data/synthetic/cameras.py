@@ -1,9 +1,10 @@
-"""Static cameras of the synthetic clips: configuration, look-at placement, sampling.
+"""Cameras of the synthetic clips: configuration, look-at placement, sampling.
 
 :func:`look_at_extrinsics` is the package's :meth:`jmocap.camera.Camera.look_at` called on
 numpy arrays in float64 (:func:`~.bridge.np64`); :func:`project_points` is the numpy form of
 :func:`jmocap.camera.project` (its docstring says why it stays numpy); :func:`sample_camera` places a
-camera that keeps the subject in view.
+static camera that keeps the subject in view, :func:`sample_moving_camera` a moving one
+(:data:`MOVING_KINDS`: hand-held, panning tripod, dolly, orbiting drone) with its per-frame track.
 """
 
 from __future__ import annotations
@@ -64,7 +65,8 @@ def look_at_extrinsics(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 
 
 def project_points(intrinsics, extrinsics, X):
-    """Pinhole projection of world points (..., 3): pixels (..., 2) and depth (...,).
+    """Pinhole projection of world points (..., 3): pixels (..., 2) and depth (...,). With a
+    camera track ``extrinsics`` (T, 4, 4), ``X`` is (T, ..., 3) and frame t is seen by camera t.
 
     The maths of :func:`jmocap.camera.project` (``u = fx X/Z + cx``, ``v = fy Y/Z + cy``; that
     one maps Z = 0 to the principal point), kept in numpy: it projects every joint-frame of a
@@ -72,7 +74,14 @@ def project_points(intrinsics, extrinsics, X):
     :func:`sample_camera`, and JAX would compile again for every new T (0.5 s per shape
     measured, against ~1 ms per call here)."""
     fx, fy, cx, cy = intrinsics
-    Xc = X @ extrinsics[:3, :3].T + extrinsics[:3, 3]
+    extrinsics = np.asarray(extrinsics)
+    if extrinsics.ndim == 3:  # one camera per frame
+        X = np.asarray(X)
+        R = extrinsics[:, :3, :3].reshape((len(X),) + (1,) * (X.ndim - 2) + (3, 3))
+        t = extrinsics[:, :3, 3].reshape((len(X),) + (1,) * (X.ndim - 2) + (3,))
+        Xc = np.einsum("...ij,...j->...i", R, X) + t
+    else:
+        Xc = X @ extrinsics[:3, :3].T + extrinsics[:3, 3]
     z = Xc[..., 2]
     uv = np.stack([fx * Xc[..., 0] / z + cx, fy * Xc[..., 1] / z + cy], axis=-1)
     return uv, z
@@ -135,3 +144,170 @@ def sample_camera(rng: np.random.Generator, points: np.ndarray, cfg: CameraConfi
         K[:2] *= 0.9
     info["focal_shrunk"] = True
     return K, size, E, info
+
+
+#: the moving cameras of :func:`sample_moving_camera`
+MOVING_KINDS = ("handheld", "pan", "dolly", "orbit")
+
+
+def _smooth(x: np.ndarray, sigma_frames: float) -> np.ndarray:
+    """Gaussian smoothing along axis 0 (edges padded by reflection): a camera operator's lag."""
+    if sigma_frames <= 0:
+        return x
+    r = int(np.ceil(3 * sigma_frames))
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma_frames) ** 2)
+    k /= k.sum()
+    pad = np.pad(x, [(r, r)] + [(0, 0)] * (x.ndim - 1), mode="reflect" if len(x) > r else "edge")
+    return np.stack([np.tensordot(k, pad[i:i + 2 * r + 1], axes=(0, 0)) for i in range(len(x))])
+
+
+def _smooth_noise(rng, T: int, dims: int, sigma_frames: float) -> np.ndarray:
+    """Unit-variance Gaussian noise (T, dims) smoothed over ``sigma_frames`` (hand tremor, drift)."""
+    n = _smooth(rng.standard_normal((T + 1, dims)), sigma_frames)[:T]
+    return n / max(float(n.std()), 1e-9)
+
+
+def _rotation_xyz(angles: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) camera-frame rotations of small angles (T, 3) about x, y, z (radians)."""
+    out = []
+    for a, b, c in angles:
+        Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+        Ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+        Rz = np.array([[np.cos(c), -np.sin(c), 0], [np.sin(c), np.cos(c), 0], [0, 0, 1]])
+        out.append(Rz @ Ry @ Rx)
+    return np.stack(out)
+
+
+def _track_path(rng, kind: str, points: np.ndarray, fps: float, cfg: CameraConfig):
+    """The eye and target paths (T, 3) of one draw of a moving camera of ``kind`` around the
+    subject whose joints are ``points`` (T, J, 3), with a per-frame roll/tremor (T, 3) in the
+    camera's axes (radians) and the draw's description."""
+    T = len(points)
+    centre = 0.5 * (points.min(axis=1) + points.max(axis=1))  # (T, 3) the subject's box centre
+    top = float(points[..., 2].max())
+    dist = float(rng.uniform(*cfg.distance_m))
+    cam_h = float(rng.uniform(*cfg.height_m))
+    az = float(rng.uniform(-np.pi, np.pi))
+    aim = float(rng.uniform(0.35, 0.6)) * top
+    shake = np.zeros((T, 3))
+    info: dict = dict(kind=kind, distance_m=dist, height_m=cam_h, azimuth=az)
+    if kind == "pan":  # a tripod turning to follow the subject (with an operator's lag)
+        lag = float(rng.uniform(0.1, 0.4))
+        c0 = centre.mean(0)
+        eye = np.broadcast_to(np.array([c0[0] + dist * np.cos(az), c0[1] + dist * np.sin(az), cam_h]), (T, 3)).copy()
+        target = _smooth(centre, lag * fps)
+        target[:, 2] = aim
+        # the operator reframes: the aim sweeps sideways and up and down over a few seconds
+        period = float(rng.uniform(3.0, 8.0))
+        sweep = float(rng.uniform(0.2, 0.8)), float(rng.uniform(0.05, 0.25))
+        ph = 2 * np.pi * np.arange(T) / (period * fps) + float(rng.uniform(0, 2 * np.pi))
+        lateral = np.array([-np.sin(az), np.cos(az), 0.0])
+        target = target + sweep[0] * np.sin(ph)[:, None] * lateral + np.outer(sweep[1] * np.sin(0.7 * ph), [0, 0, 1.0])
+        info.update(lag_s=lag, sweep_m=sweep[0], sweep_period_s=period)
+    elif kind == "dolly":  # a camera on a straight track beside the subject's path, keeping level with it
+        c0 = centre.mean(0)
+        direction = centre[-1, :2] - centre[0, :2]
+        if np.linalg.norm(direction) < 0.3:  # a subject in place: the dolly moves along a random line
+            direction = np.array([np.cos(az + np.pi / 2), np.sin(az + np.pi / 2)])
+        direction = direction / np.linalg.norm(direction)
+        side = np.array([-direction[1], direction[0]]) * (1.0 if rng.uniform() < 0.5 else -1.0)
+        lag = float(rng.uniform(0.2, 0.6))
+        slide = float(rng.uniform(0.2, 0.8)) * (1.0 if rng.uniform() < 0.5 else -1.0)  # the dolly's own move
+        along = _smooth(centre[:, :2] @ direction, lag * fps) + slide * np.arange(T) / fps
+        base = c0[:2] - (c0[:2] @ direction) * direction + side * dist
+        eye = np.concatenate([base + along[:, None] * direction, np.full((T, 1), cam_h)], -1)
+        target = _smooth(centre, 0.5 * lag * fps)
+        target[:, 2] = aim
+        info.update(lag_s=lag, slide_mps=slide)
+    elif kind == "orbit":  # a drone circling the subject
+        rate = np.radians(float(rng.uniform(10.0, 40.0))) * (1.0 if rng.uniform() < 0.5 else -1.0)
+        height = float(rng.uniform(max(cam_h, 1.5), max(cam_h, 1.5) + 3.0))
+        follow = _smooth(centre, 0.5 * fps)
+        ang = az + rate * np.arange(T) / fps
+        eye = np.stack([follow[:, 0] + dist * np.cos(ang), follow[:, 1] + dist * np.sin(ang),
+                        np.full(T, height)], -1)
+        target = follow.copy()
+        target[:, 2] = aim
+        shake = np.radians(0.3) * _smooth_noise(rng, T, 3, 0.3 * fps)  # wind on the gimbal
+        info.update(rate_dps=float(np.degrees(rate)), height_m=height)
+    elif kind == "handheld":  # an operator walking with the subject: bob and sway at the step rate, tremor
+        lag = float(rng.uniform(0.3, 0.8))
+        follow = _smooth(centre, lag * fps)
+        offset = np.array([dist * np.cos(az), dist * np.sin(az)])
+        step_hz = float(rng.uniform(1.6, 2.2))
+        phase = 2 * np.pi * step_hz * np.arange(T) / fps + float(rng.uniform(0, 2 * np.pi))
+        bob = float(rng.uniform(0.01, 0.04)) * np.cos(phase)  # the walk's vertical bob (twice per stride)
+        sway_dir = np.array([-offset[1], offset[0]]) / dist
+        sway = float(rng.uniform(0.01, 0.03)) * np.cos(0.5 * phase)  # side to side, once per stride
+        moving = np.linalg.norm(np.diff(follow[:, :2], axis=0), axis=-1).sum() > 0.2 * T / fps
+        gait = 1.0 if moving else float(rng.uniform(0.0, 0.3))  # a standing operator barely bobs
+        wander = float(rng.uniform(0.1, 0.4)) * _smooth_noise(rng, T, 2, 1.0 * fps)  # the operator's feet
+        eye = np.concatenate([follow[:, :2] + offset + gait * sway[:, None] * sway_dir + wander,
+                              (cam_h + gait * bob)[:, None]], -1)
+        target = _smooth(centre, 0.5 * lag * fps)
+        target[:, 2] = aim
+        tremor_deg = float(rng.uniform(0.3, 1.5))
+        shake = np.radians(tremor_deg) * _smooth_noise(rng, T, 3, 0.15 * fps)
+        info.update(lag_s=lag, step_hz=step_hz, tremor_deg=tremor_deg, walking_operator=bool(moving))
+    else:
+        raise ValueError(f"unknown moving camera {kind!r} (one of {', '.join(MOVING_KINDS)})")
+    return eye, target, shake, info
+
+
+def sample_moving_camera(rng: np.random.Generator, points: np.ndarray, fps: float, kind: str,
+                         cfg: CameraConfig = CameraConfig()):
+    """A moving camera of ``kind`` (:data:`MOVING_KINDS`) filming the subject whose world joints
+    are ``points`` (T, J, 3) at ``fps``:
+
+    * ``handheld``: an operator following the subject at a distance with a lag of 0.3-0.8 s,
+      the walk's bob (1-4 cm at the step rate) and sway (1-3 cm) while the subject moves, and a
+      hand's tremor of 0.3-1.5 degrees;
+    * ``pan``: a tripod that pans and tilts to keep the subject in frame (lag 0.1-0.4 s);
+    * ``dolly``: a camera on a straight track beside the subject's path, following it along;
+    * ``orbit``: a drone circling the subject at 10-40 degrees per second, 1.5-5 m up.
+
+    The intrinsics and image are drawn as :func:`sample_camera`'s (``cfg``); each draw must keep
+    ``min_visible`` of the joint-frames in the image and every joint ``min_depth_m`` ahead, else
+    it is redrawn, and the last resort shortens the focal length until the subject fits.
+    Returns (intrinsics (4,), image_size (2,), camera track (T, 4, 4) world -> camera, info)."""
+    best = None
+    for attempt in range(cfg.tries):
+        W, H = cfg.image_sizes[int(rng.integers(len(cfg.image_sizes)))]
+        if cfg.focal_equiv_mm is None:
+            f = float(np.exp(rng.uniform(np.log(cfg.focal_px[0]), np.log(cfg.focal_px[1]))))
+        else:
+            f = float(np.exp(rng.uniform(np.log(cfg.focal_equiv_mm[0]), np.log(cfg.focal_equiv_mm[1])))) / 36.0 * max(W, H)
+        eye, target, shake, info = _track_path(rng, kind, points, fps, cfg)
+        view = (target - eye) / np.linalg.norm(target - eye, axis=-1, keepdims=True)
+        if np.abs(view[:, 2]).max() > 0.98:
+            continue
+        track = np.stack([look_at_extrinsics(e, g) for e, g in zip(eye, target, strict=True)])
+        roll = math.radians(float(rng.uniform(-cfg.roll_deg, cfg.roll_deg))) if cfg.roll_deg > 0 else 0.0
+        shake = shake + np.array([0.0, 0.0, roll])
+        if np.any(shake != 0):  # the camera turned about its own axes: E <- R_shake E
+            track[:, :3, :] = np.einsum("tij,tjk->tik", _rotation_xyz(shake), track[:, :3, :])
+        cx = W / 2 + float(rng.uniform(-1, 1)) * cfg.principal_jitter * W
+        cy = H / 2 + float(rng.uniform(-1, 1)) * cfg.principal_jitter * H
+        K = np.array([f, f, cx, cy])
+        uv, z = project_points(K, track, points)
+        if z.min() < cfg.min_depth_m:
+            continue
+        inside = (uv[..., 0] >= 0) & (uv[..., 0] < W) & (uv[..., 1] >= 0) & (uv[..., 1] < H)
+        frac = float(inside.mean())
+        cand = (K, np.array([W, H]), track, dict(info, attempts=attempt + 1, roll_deg=math.degrees(roll)))
+        if frac >= cfg.min_visible:
+            return cand
+        if best is None or frac > best[0]:
+            best = (frac, cand)
+    if best is None:
+        raise GenerationError(f"no {kind} camera keeps the subject in front of the camera")
+    K, size, track, info = best[1]
+    for _ in range(40):
+        uv, _z = project_points(K, track, points)
+        inside = (uv[..., 0] >= 0) & (uv[..., 0] < size[0]) & (uv[..., 1] >= 0) & (uv[..., 1] < size[1])
+        if inside.mean() >= cfg.min_visible:
+            break
+        K = K.copy()
+        K[:2] *= 0.9
+    info["focal_shrunk"] = True
+    return K, size, track, info

@@ -16,7 +16,13 @@ from typing import Any
 import numpy as np
 
 from jmocap.data.clip import Clip
-from jmocap.data.synthetic.cameras import CameraConfig, project_points, sample_camera
+from jmocap.data.synthetic.cameras import (
+    MOVING_KINDS,
+    CameraConfig,
+    project_points,
+    sample_camera,
+    sample_moving_camera,
+)
 from jmocap.data.synthetic.character import site_trajectories
 from jmocap.data.synthetic.curves import _runs
 from jmocap.data.synthetic.errors import GenerationError
@@ -61,6 +67,14 @@ class SynthConfig:
     physics_cfg: PhysicsConfig = field(default_factory=PhysicsConfig)
     max_attempts: int = 12
     extended: bool = False
+    # cameras to draw from for each clip: "static" and MOVING_KINDS (handheld, pan, dolly,
+    # orbit); () is a static camera (sample_camera) without the extra draw
+    moving_camera: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        bad = [k for k in self.moving_camera if k not in MOVING_KINDS + ("static",)]
+        if bad:
+            raise ValueError(f"unknown camera kind(s) {bad}: one of {', '.join(MOVING_KINDS + ('static',))}")
 
     @classmethod
     def extended_generator(cls, **changes) -> SynthConfig:
@@ -170,8 +184,15 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
                 contacts = sim["contacts"]  # force and floor (docs/data.md)
                 heights = site_trajectories(ch, q, ch.check_sites)[..., 2]
                 meta["physics"]["min_site_height"] = float(heights.min())
-            K, size, E, cam_info = sample_camera(rng, kp3d, config.camera)
-            uv, _ = project_points(K, E, kp3d)
+            cam_kind = (config.moving_camera[int(rng.integers(len(config.moving_camera)))]
+                        if config.moving_camera else "static")
+            track = None
+            if cam_kind == "static":
+                K, size, E, cam_info = sample_camera(rng, kp3d, config.camera)
+            else:
+                K, size, track, cam_info = sample_moving_camera(rng, kp3d, config.fps, cam_kind, config.camera)
+                E = track[0]
+            uv, _ = project_points(K, E if track is None else track, kp3d)
             kp2d, corr = corrupt_keypoints(rng, uv, layout, size, config.corruption)
         except GenerationError as e:
             errors.append(f"attempt {attempt}: {e}")
@@ -208,6 +229,7 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
             intrinsics=K,
             image_size=size,
             extrinsics=E,
+            camera_track=track,
             gt_q=q,
             gt_qd=qd,
             gt_keypoints3d=kp3d,

@@ -216,8 +216,8 @@ def corrupt_keypoints(rng: np.random.Generator, uv: np.ndarray, layout, image_si
 
 def clean_keypoints2d(clip: Clip) -> np.ndarray:
     """The exact projection (T, J, 2) of a synthetic clip's ``gt_keypoints3d`` with its camera
-    (what the 2D keypoints are before corruption)."""
+    (every frame's, for a moving camera): what the 2D keypoints are before corruption."""
     if clip.gt_keypoints3d is None or clip.extrinsics is None:
         raise ValueError(f"clip {clip.name!r} has no 3D ground truth or no extrinsics")
-    uv, _ = project_points(clip.intrinsics, clip.extrinsics, clip.gt_keypoints3d.astype(np.float64))
+    uv, _ = project_points(clip.intrinsics, clip.world_to_camera(), clip.gt_keypoints3d.astype(np.float64))
     return uv
