@@ -344,3 +344,44 @@ def test_batch_results_keep_the_track_and_chunks_see_their_own_cameras(shipped, 
     # the root TPNet puts in front of each frame's camera: ahead of it, at a plausible depth
     depth = np.einsum("tj,tj->t", out[16]["q"][:, :3], clip.camera_track[:, 2, :3]) + clip.camera_track[:, 2, 3]
     assert (depth > 1.0).all()
+
+
+def test_stabilised_windows_are_what_the_target_camera_sees():
+    """Points on the plane at depth d in frame s's camera, lifted at d and projected through frame
+    t's camera, land where camera t projects them (reference: the pinhole projection); a camera
+    that only turns needs no depth at all."""
+    from jmocap.methods.contact_estimation import stabilise_window
+
+    rng = np.random.default_rng(3)
+    track = _track(4)
+    d = np.array([3.0, 3.5, 4.0, 4.5])
+    fx, fy, cx, cy = INTR
+    xy = np.stack([rng.uniform(200, 1000, (4, 13)), rng.uniform(100, 600, (4, 13))], -1)  # seen by camera s
+    ray = np.stack([(xy[..., 0] - cx) / fx, (xy[..., 1] - cy) / fy, np.ones((4, 13))], -1) * d[:, None, None]
+    Xw = np.einsum("sji,skj->ski", track[:, :3, :3], ray - track[:, None, :3, 3])  # the world points
+    frames = np.array([[0, 1, 2, 3]] * 4)  # every target frame's window holds all four frames
+    win = np.broadcast_to(xy, (4, 4, 13, 2))
+    got = np.asarray(stabilise_window(win, frames, INTR, track, d))
+    for t in range(4):
+        ref, _ = project_points(INTR, track[t], Xw)  # (4 sources, 13, 2) seen by camera t
+        np.testing.assert_allclose(got[t], ref, atol=1e-3)  # float32 pixels
+    turning = track.copy()
+    centre = -track[0, :3, :3].T @ track[0, :3, 3]
+    turning[:, :3, 3] = -np.einsum("sij,j->si", turning[:, :3, :3], centre)  # every camera at the same centre
+    a = np.asarray(stabilise_window(win, frames, INTR, turning, d))
+    b = np.asarray(stabilise_window(win, frames, INTR, turning, 3.0 * d))
+    np.testing.assert_allclose(a, b, atol=1e-3)
+
+
+def test_contact_estimate_of_a_static_camera_does_not_change_with_stabilisation():
+    import jax
+
+    from jmocap.inputs import ClipInputs
+    from jmocap.methods import contact_estimation as CE
+
+    clip = generate_clip(4, 0, SynthConfig(frames=40))
+    inp = ClipInputs.from_clip(clip, 48)
+    params = CE.default_contact_params()
+    raw = np.asarray(jax.jit(CE.estimate_contacts)(params, inp))
+    stab = np.asarray(jax.jit(CE.estimate_contacts)(params, inp, depth=np.full(48, 4.0, np.float32)))
+    np.testing.assert_allclose(stab, raw, atol=1e-6)

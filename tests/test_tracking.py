@@ -85,25 +85,31 @@ def test_contact_state_is_pips_rule():
 
 def _demo_cycle(names=("demo_walk", "demo_run", "demo_jump"), frames=120):
     """Cycle states of the pip method on the demo clips: (model, config, states, refs, dt)."""
+    x64 = bool(jax.config.jax_enable_x64)
+    runs = [_demo_run(name, frames, x64) for name in names]
+    return runs[0][0], [r[1] for r in runs]
+
+
+@functools.lru_cache(maxsize=8)
+def _demo_run(name: str, frames: int, x64: bool):
+    """One demo clip's pip cycle in the precision of ``x64``, computed once per test module (the
+    tests that read the same clip share it: it is a minute of compilation and simulation)."""
     params, config = load_run_params(None, method="pip")
-    dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    dtype = jnp.float64 if x64 else jnp.float32
     params = jax.tree.map(lambda a: jnp.asarray(a, dtype), params)
-    out = []
-    for name in names:
-        clip = load_clip(DEMO / f"{name}.npz").slice(0, frames)
-        model = subject_model(clip)
-        inputs = ClipInputs.from_clip(clip)
-        inputs = inputs.replace(keypoints=jnp.asarray(inputs.keypoints, dtype))
+    clip = load_clip(DEMO / f"{name}.npz").slice(0, frames)
+    model = subject_model(clip)
+    inputs = ClipInputs.from_clip(clip)
+    inputs = inputs.replace(keypoints=jnp.asarray(inputs.keypoints, dtype))
 
-        @jax.jit
-        def run(params, inputs, model=model):
-            ref = pip.clip_reference(params, model, inputs, config)
-            _, fo = pip.simulate(model, ref, jnp.asarray(inputs.mask), inputs.fps, config)
-            return ref, fo
+    @jax.jit
+    def run(params, inputs, model=model):
+        ref = pip.clip_reference(params, model, inputs, config)
+        _, fo = pip.simulate(model, ref, jnp.asarray(inputs.mask), inputs.fps, config)
+        return ref, fo
 
-        ref, fo = run(params, inputs)
-        out.append((model, ref, fo, 1.0 / clip.fps / config.iterations))
-    return config, out
+    ref, fo = run(params, inputs)
+    return config, (model, ref, fo, 1.0 / clip.fps / config.iterations)
 
 
 def _objective(qp, x):

@@ -228,3 +228,20 @@ def test_cli_render(gl, model, tmp_path, capsys):
     assert (tmp_path / "plots" / "clip_forces.png").is_file()
     assert cli.main(["render", str(tmp_path / "missing.npz")]) == 1
     assert "result file not found" in capsys.readouterr().err
+
+
+def test_a_moving_camera_renders_each_frame_from_its_own_pose(gl, model):
+    """The ``camera`` view of a camera track (T, 4, 4): frame t is the image of the static camera
+    at track[t] (frame 1's camera moved a metre sideways changes frame 1 only)."""
+    q = squat(model, 3)
+    a = Camera.look_at([3.0, -1.5, 1.4], [0.0, 0.0, 0.8], width=640, height=480, fx=800.0, dtype=np.float64)
+    b = Camera.look_at([3.0, -0.5, 1.4], [0.0, 0.0, 0.8], width=640, height=480, fx=800.0, dtype=np.float64)
+    track = np.stack([np.asarray(a.extrinsics), np.asarray(b.extrinsics), np.asarray(a.extrinsics)])
+    moving = a.replace(extrinsics=track)
+    got = list(viz.render_frames(model, q, camera=moving, views=("camera",), size=(W, H)))
+    still = list(viz.render_frames(model, q, camera=a, views=("camera",), size=(W, H)))
+    moved = list(viz.render_frames(model, q, camera=b, views=("camera",), size=(W, H)))
+    np.testing.assert_array_equal(got[0], still[0])
+    np.testing.assert_array_equal(got[1], moved[1])
+    np.testing.assert_array_equal(got[2], still[2])
+    assert np.abs(got[1].astype(int) - still[1].astype(int)).sum() > 0

@@ -94,14 +94,15 @@ def standing_shares() -> dict[str, float]:
 
 
 def _rays(clip: Clip) -> tuple[np.ndarray, np.ndarray]:
-    """Camera centre (3,) and unit world-frame ray directions (T, J, 3) of the keypoints."""
+    """Camera centre of every frame (T, 3) (a moving camera's track, else the one camera) and
+    unit world-frame ray directions (T, J, 3) of the keypoints."""
     fx, fy, cx, cy = (float(v) for v in clip.intrinsics)
-    E = np.asarray(clip.extrinsics, np.float64)
-    R, t = E[:3, :3], E[:3, 3]
+    E = np.asarray(clip.world_to_camera(), np.float64)
+    R, t = E[:, :3, :3], E[:, :3, 3]
     kp = np.asarray(clip.keypoints, np.float64)
     d_cam = np.stack([(kp[..., 0] - cx) / fx, (kp[..., 1] - cy) / fy, np.ones(kp.shape[:2])], -1)
-    d = d_cam @ R  # R^T d for each ray
-    return -R.T @ t, d / np.linalg.norm(d, axis=-1, keepdims=True)
+    d = np.einsum("tji,tkj->tki", R, d_cam)  # R^T d for each ray
+    return -np.einsum("tji,tj->ti", R, t), d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
 def _per_frame(clip: Clip, height: float, centre: np.ndarray, rays: np.ndarray) -> np.ndarray:
@@ -119,28 +120,28 @@ def _per_frame(clip: Clip, height: float, centre: np.ndarray, rays: np.ndarray) 
         for k, i in enumerate(idx):
             dz = rays[:, i, 2]
             with np.errstate(invalid="ignore", divide="ignore"):
-                s = (share[lay.sites[i]] * height - centre[2]) / np.where(np.abs(dz) > 1e-9, dz, np.nan)
+                s = (share[lay.sites[i]] * height - centre[:, 2]) / np.where(np.abs(dz) > 1e-9, dz, np.nan)
             ok = (conf[:, i] >= MIN_CONFIDENCE) & (s > 0)
-            hit = centre[:2] + s[:, None] * rays[:, i, :2]
+            hit = centre[:, :2] + s[:, None] * rays[:, i, :2]
             pts[ok, k] = hit[ok]
         n = np.sum(np.isfinite(pts[..., 0]), axis=1)
         mean = np.nansum(np.nan_to_num(pts, nan=0.0), axis=1) / np.maximum(n, 1)[:, None]
         grounds.append(np.where((n > 0)[:, None], mean, np.nan))
     g = np.stack(grounds, 1)  # (T, 2 feet, 2)
-    dist = np.linalg.norm(g - centre[:2], axis=-1)
+    dist = np.linalg.norm(g - centre[:, None, :2], axis=-1)
     near = np.argmin(np.where(np.isnan(dist), np.inf, dist), axis=1)
     ground = g[np.arange(T), near]  # (T, 2); NaN where neither foot was seen
     # 2. each upper-body keypoint's height on the vertical line through the ground point: the
     # closest points of the ray c + s d and the line (gx, gy, 0) + u z
     upper = [i for i, s in enumerate(lay.sites) if s in UPPER_SITES]
     est = np.full((T, len(upper)), np.nan)
-    w = np.concatenate([centre[:2] - ground, np.full((T, 1), centre[2])], -1)
+    w = np.concatenate([centre[:, :2] - ground, centre[:, 2:3]], -1)
     for k, i in enumerate(upper):
         d = rays[:, i]
         den = 1.0 - d[:, 2] ** 2  # |d| = 1; 0 only for a vertical ray
         with np.errstate(invalid="ignore", divide="ignore"):
             s = (d[:, 2] * w[:, 2] - np.einsum("tk,tk->t", d, w)) / np.where(den > 1e-6, den, np.nan)
-        z = centre[2] + s * d[:, 2]
+        z = centre[:, 2] + s * d[:, 2]
         ok = (conf[:, i] >= MIN_CONFIDENCE) & (s > 0) & np.isfinite(z)
         est[ok, k] = z[ok] / share[lay.sites[i]]
     n = np.sum(np.isfinite(est), axis=1)

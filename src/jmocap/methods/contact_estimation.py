@@ -147,8 +147,31 @@ def body_size(xy: Array, vis: Array, image_size: Array) -> Array:
     return jnp.maximum(size, 1e-3 * jnp.max(image_size))
 
 
+def stabilise_window(xy: Array, frames: Array, intrinsics: Array, cameras: Array, depth: Array) -> Array:
+    """Keypoints (T, w, K, 2) of each target frame's window (``frames`` (T, w): the frame each
+    came from) as the target frame's own camera would have seen them: every point is lifted to
+    its frame's person depth ``depth`` (T,) (m, along its camera's optical axis) through its
+    frame's camera ``cameras`` (T, 4, 4) world -> camera, and projected through the target
+    frame's. A camera's rotation is undone exactly (the depth drops out); its translation to
+    the precision of the depth (the points of one body are taken at one depth). Frames whose
+    depth is below 0.1 m, and points that would land behind the target camera, stay as seen."""
+    fx, fy, cx, cy = (intrinsics[..., i] for i in range(4))
+    dtype = xy.dtype
+    d = depth[frames].astype(dtype)[..., None]  # (T, w, 1)
+    ray = jnp.stack([(xy[..., 0] - cx) / fx, (xy[..., 1] - cy) / fy, jnp.ones_like(xy[..., 0])], -1)
+    Xs = ray * d[..., None]  # (T, w, K, 3) in the source frame's camera
+    Es = cameras[frames].astype(dtype)  # (T, w, 4, 4)
+    Xw = jnp.einsum("twji,twkj->twki", Es[..., :3, :3], Xs - Es[..., None, :3, 3])
+    Et = cameras.astype(dtype)
+    Xt = jnp.einsum("tij,twkj->twki", Et[:, :3, :3], Xw) + Et[:, None, None, :3, 3]
+    ok = (d[..., None] > 0.1) & (Xt[..., 2:] > 1e-3)
+    z = jnp.where(ok, Xt[..., 2:], 1.0)
+    uv = jnp.concatenate([fx * Xt[..., :1] / z + cx, fy * Xt[..., 1:2] / z + cy], -1)
+    return jnp.where(ok, uv, xy)
+
+
 def contact_features(keypoints: Array, image_size: Array, mask: Array, layout: str = "body25",
-                     window: int = WINDOW) -> Array:
+                     window: int = WINDOW, stabilise: tuple[Array, Array, Array] | None = None) -> Array:
     """Network input (T, window x 39) per target frame: a window of ``window`` frames (odd,
     centred; 9 by default) x 13 lower-body joints x (x, y, confidence), positions relative to
     the target frame's root and divided by the window's body size (module docstring);
@@ -156,7 +179,10 @@ def contact_features(keypoints: Array, image_size: Array, mask: Array, layout: s
 
     ``keypoints`` (T, J, 3): pixels and confidence in the ``layout`` (BODY_25); ``image_size``
     (2,) width, height; ``mask`` (T,) real frames (padded frames replicate the nearest real one).
-    ``layout`` and ``window`` are static.
+    ``layout`` and ``window`` are static. ``stabilise``, ``(intrinsics (4,), cameras (T, 4, 4),
+    depth (T,))`` of a moving camera, first moves every window into its target frame's camera
+    (:func:`stabilise_window`): the network was trained on static cameras, where a foot at rest
+    stays still in the image.
     """
     if window < 1 or window % 2 == 0:
         raise ValueError(f"the contact window must be an odd number of frames, got {window}")
@@ -164,9 +190,14 @@ def contact_features(keypoints: Array, image_size: Array, mask: Array, layout: s
     kp = jnp.asarray(keypoints)[:, sel]
     kp = kp.astype(jnp.promote_types(kp.dtype, jnp.float32))
     T = kp.shape[0]
-    win = kp[window_frames(jnp.asarray(mask, bool), window // 2)]  # (T, w, 13, 3)
+    frames = window_frames(jnp.asarray(mask, bool), window // 2)
+    win = kp[frames]  # (T, w, 13, 3)
     xy, conf = win[..., :2], win[..., 2]
     vis = conf > 0
+    if stabilise is not None:
+        intrinsics, cameras, depth = stabilise
+        xy = jnp.where(vis[..., None], stabilise_window(xy, frames, jnp.asarray(intrinsics, xy.dtype),
+                                                        jnp.asarray(cameras), jnp.asarray(depth)), xy)
     root = _root(xy, vis)
     size = body_size(xy, vis, image_size)
     rel = (xy - root[:, None, None, :]) / size[:, None, None, None]
@@ -268,26 +299,32 @@ def vote(window_probs: Array, mask: Array) -> Array:
     return jnp.where((mask & (count > 0))[:, None], frac, 0.0)
 
 
-def window_probabilities(params, inputs: ClipInputs, layout: str = "body25", mirror: bool = True) -> Array:
+def window_probabilities(params, inputs: ClipInputs, layout: str = "body25", mirror: bool = True,
+                         depth: Array | None = None) -> Array:
     """Contact probabilities (T, 5, 4) of every target frame's 5-frame window. With ``mirror``
     (static), the mean of the MLP's probabilities for the keypoints and for their horizontal
     mirror image (:func:`flip_features`, its left and right contacts swapped back): the network
     was trained on both, and a person and their mirror image make the same contacts. On the
     validation archives (shipped weights of stop 42) voted F1 89.5 -> 89.6 % (``data/val``),
     86.7 -> 87.3 % (``data/val_walk``), 85.2 -> 85.4 % (``data/val_flight``), for a second pass
-    of the MLP (docs/method.md, "Contact estimation")."""
-    f = contact_features(inputs.keypoints, inputs.image_size, inputs.mask, layout, window_of(params))
+    of the MLP (docs/method.md, "Contact estimation"). With ``depth`` (T,), the person's depth
+    in every frame's camera, each window is first seen from its target frame's camera
+    (:func:`contact_features`' ``stabilise``): a moving camera's motion taken out."""
+    stab = None if depth is None else (inputs.intrinsics, inputs.world_to_camera(), depth)
+    f = contact_features(inputs.keypoints, inputs.image_size, inputs.mask, layout, window_of(params), stab)
     p = jax.nn.sigmoid(window_logits(params, f))
     if mirror:
         p = 0.5 * (p + flip_contacts(jax.nn.sigmoid(window_logits(params, flip_features(f)))))
     return p
 
 
-def estimate_contacts(params, inputs: ClipInputs, layout: str = "body25", mirror: bool = True) -> Array:
+def estimate_contacts(params, inputs: ClipInputs, layout: str = "body25", mirror: bool = True,
+                      depth: Array | None = None) -> Array:
     """Voted contact fractions (T, 4) in [0, 1] of one clip (``> 0.5``: in contact; L heel,
-    L toe, R heel, R toe); padded frames 0. ``mirror`` (static): see :func:`window_probabilities`.
-    ``jax.jit`` / ``jax.vmap`` over clips apply (``layout`` and ``mirror`` static)."""
-    return vote(window_probabilities(params, inputs, layout, mirror), inputs.mask)
+    L toe, R heel, R toe); padded frames 0. ``mirror`` (static) and ``depth`` (the person's
+    depth per frame, for a moving camera): see :func:`window_probabilities`. ``jax.jit`` /
+    ``jax.vmap`` over clips apply (``layout`` and ``mirror`` static)."""
+    return vote(window_probabilities(params, inputs, layout, mirror, depth), inputs.mask)
 
 
 #: the foot keypoints of each contact point for the velocity baseline (L heel, L toe, R heel,

@@ -339,7 +339,7 @@ def contact_probabilities(params: dict, inputs: ClipInputs, tp, config: PIPConfi
     if source == "mlp":
         from jmocap.methods import contact_estimation as CE
 
-        return CE.estimate_contacts(CE.contact_params(params), inputs, config.layout)
+        return CE.estimate_contacts(CE.contact_params(params), inputs, config.layout, depth=tp.trans_cam[:, 2])
     raise AssertionError(source)
 
 

@@ -862,14 +862,17 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
 # ---------------------------------------------------------------------------------------
 
 
-def contact_labels(params: dict, inputs: ClipInputs, tpnet_prob: Array, config: TrajOptConfig) -> Array:
-    """(T, 4) contact probabilities of the configured source."""
+def contact_labels(params: dict, inputs: ClipInputs, tpnet_prob: Array, config: TrajOptConfig,
+                   depth: Array | None = None) -> Array:
+    """(T, 4) contact probabilities of the configured source; ``depth`` (T,), TPNet's root depth
+    in every frame's camera, lets the estimator take a moving camera's motion out of its windows
+    (:func:`jmocap.methods.contact_estimation.window_probabilities`)."""
     if config.contact_source == "tpnet":
         return tpnet_prob
     if config.contact_source == "mlp":
         from jmocap.methods import contact_estimation as CE
 
-        return CE.estimate_contacts(CE.contact_params(params), inputs, config.layout)
+        return CE.estimate_contacts(CE.contact_params(params), inputs, config.layout, depth=depth)
     raise ValueError(f"unknown contact_source {config.contact_source!r} (mlp, tpnet)")
 
 
@@ -1075,7 +1078,7 @@ def reconstruct(params: dict, model: Model, inputs: ClipInputs,
     motion (see the module docstring)."""
     tp = S.target_pose(params, model, inputs, config)
     mask = jnp.asarray(inputs.mask)
-    prob_c = contact_labels(params, inputs, S.contact_probability(tp.contact_logits), config)
+    prob_c = contact_labels(params, inputs, S.contact_probability(tp.contact_logits), config, tp.trans_cam[:, 2])
     q0 = initial_trajectory(model, tp.q_hat, mask)
     out = fit_clip(model, problem(model, inputs, tp.q_hat, prob_c, config), q0, config)
     qd, tau, grf, report = outputs(model, out.q, out.force, mask, inputs.fps)
