@@ -385,3 +385,31 @@ def test_contact_estimate_of_a_static_camera_does_not_change_with_stabilisation(
     raw = np.asarray(jax.jit(CE.estimate_contacts)(params, inp))
     stab = np.asarray(jax.jit(CE.estimate_contacts)(params, inp, depth=np.full(48, 4.0, np.float32)))
     np.testing.assert_allclose(stab, raw, atol=1e-6)
+
+
+def test_cli_data_synth_moving_camera(tmp_path, capsys):
+    """``--moving-camera`` (the four kinds by default, or a list that may include ``static``) is
+    recorded in the archive's settings; its clips carry their tracks; with ``--imu`` it is refused."""
+    import json as _json
+
+    from jmocap.cli import main
+    from jmocap.data.archive import Archive
+
+    out = tmp_path / "moving"
+    assert main(["data", "synth", "--out", str(out), "--clips", "2", "--seed", "4", "--frames-per-clip", "20",
+                 "--moving-camera", "pan,static", "--quiet"]) == 0
+    assert _json.loads((out / "archive.json").read_text())["config"]["moving_camera"] == ["pan", "static"]
+    kinds = []
+    for name in ("synth_000000", "synth_000001"):
+        clip = Archive(out).load(name)
+        kinds.append(clip.meta["camera"].get("kind", "static"))
+        assert clip.moving_camera == (kinds[-1] == "pan")
+    default = tmp_path / "default"
+    assert main(["data", "synth", "--out", str(default), "--clips", "1", "--seed", "4", "--frames-per-clip", "20",
+                 "--moving-camera", "--quiet"]) == 0
+    assert Archive(default).load("synth_000000").meta["camera"]["kind"] in MOVING_KINDS
+    capsys.readouterr()
+    assert main(["data", "synth", "--out", str(tmp_path / "imu"), "--clips", "1", "--imu", "--moving-camera"]) == 2
+    assert "--moving-camera is for 2D keypoint clips" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["data", "synth", "--out", str(tmp_path / "x"), "--clips", "1", "--moving-camera", "steadicam"])
