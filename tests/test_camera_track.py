@@ -396,14 +396,20 @@ def test_cli_data_synth_moving_camera(tmp_path, capsys):
     from jmocap.data.archive import Archive
 
     out = tmp_path / "moving"
-    assert main(["data", "synth", "--out", str(out), "--clips", "2", "--seed", "4", "--frames-per-clip", "20",
-                 "--moving-camera", "pan,static", "--quiet"]) == 0
+    assert main(["data", "synth", "--out", str(out), "--clips", "2", "--seed", "5", "--frames-per-clip", "20",
+                 "--moving-camera", "pan,static", "--quiet"]) == 0  # seed 5: one of each
     assert _json.loads((out / "archive.json").read_text())["config"]["moving_camera"] == ["pan", "static"]
     kinds = []
     for name in ("synth_000000", "synth_000001"):
         clip = Archive(out).load(name)
         kinds.append(clip.meta["camera"].get("kind", "static"))
         assert clip.moving_camera == (kinds[-1] == "pan")
+    lines = [_json.loads(x) for x in (out / "manifest.jsonl").read_text().splitlines()]
+    assert [x.get("camera", "static") for x in lines] == kinds
+    capsys.readouterr()
+    assert main(["data", "info", str(out)]) == 0
+    assert kinds == ["pan", "static"]
+    assert "cameras: pan 1, static 1" in capsys.readouterr().out
     default = tmp_path / "default"
     assert main(["data", "synth", "--out", str(default), "--clips", "1", "--seed", "4", "--frames-per-clip", "20",
                  "--moving-camera", "--quiet"]) == 0

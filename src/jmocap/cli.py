@@ -238,6 +238,8 @@ def _consume(results, writer, bar, seed):
         if "imu_generator" in clip.meta:
             extra["imu"] = True
             extra["filled_sensor_frames"] = int(clip.filled.sum()) if clip.filled is not None else 0
+        if getattr(clip, "camera_track", None) is not None:  # a moving camera: its kind
+            extra["camera"] = clip.meta.get("camera", {}).get("kind", "moving")
         phys = clip.meta.get("physics")
         if phys:
             extra["residual_force_mean"] = phys["residual_force_mean"]
@@ -262,6 +264,9 @@ def cmd_data_info(args) -> int:
             print(f"{args.path}: {len(ok)} clips, {sum(e.get('frames', 0) for e in ok)} frames, "
                   f"{len(a.manifest) - len(ok)} failed")
             print("kinds: " + ", ".join(f"{k} {n}" for k, n in kinds.most_common()))
+            cameras = Counter(e.get("camera", "static") for e in ok)
+            if set(cameras) != {"static"}:  # an archive with moving cameras
+                print("cameras: " + ", ".join(f"{k} {n}" for k, n in cameras.most_common()))
             if a.settings:
                 print("settings: " + json.dumps(a.settings, sort_keys=True))
     except (ArchiveError, FileNotFoundError) as e:
