@@ -419,3 +419,18 @@ def test_cli_data_synth_moving_camera(tmp_path, capsys):
     assert "--moving-camera is for 2D keypoint clips" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["data", "synth", "--out", str(tmp_path / "x"), "--clips", "1", "--moving-camera", "steadicam"])
+
+
+def test_reconstructability_checks_every_frames_camera():
+    """A camera descending 0.12 m per frame from 1.5 m: the first frame under the floor (z < -0.1
+    m: frame 14, at -0.18 m) is named."""
+    from jmocap.data.validate import check_reconstructable
+
+    track = _track()
+    drop = 0.12 * np.arange(T)  # the centre c_t moves down by drop_t: t_t = -R c_t gains drop_t R e_z
+    track[:, :3, 3] += drop[:, None] * track[:, :3, 2]
+    z = np.array([(-E[:3, :3].T @ E[:3, 3])[2] for E in track])
+    np.testing.assert_allclose(z, 1.5 - drop, atol=1e-9)
+    with pytest.raises(FormatError, match="frame 14: field 'camera_track': the camera is .* below the floor"):
+        check_reconstructable(_clip(track), "cam")
+    assert check_reconstructable(_clip(), "cam") is not None  # the level track passes

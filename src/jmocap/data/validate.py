@@ -16,7 +16,8 @@ intrinsics                horizontal or vertical field of view        principal 
                           image size outside the image
 extrinsics (camera)       camera centre more than 1 km from the       camera centre more than
                           world origin, or more than 0.1 m below the  100 m away, or above 50 m
-                          floor (z < -0.1)
+                          floor (z < -0.1); a camera track's every
+                          frame (the first such frame named)
 height_m / mass_kg        outside [0.5, 2.5] m / [10, 300] kg         outside [1.2, 2.2] m /
                           (the character cannot be scaled so far)     [30, 200] kg
 keypoints                 a visible coordinate beyond 1e6 px; fewer   a quarter of the visible
@@ -132,21 +133,32 @@ def check_reconstructable(clip: Clip, where: str) -> list[str]:
         warnings.append(f"the principal point ({cx:g}, {cy:g}) is outside the {w}x{h} image")
 
     if clip.extrinsics is not None:
-        E = clip.extrinsics
-        centre = -E[:3, :3].T @ E[:3, 3]
-        dist = float(np.linalg.norm(centre))
-        if dist > CAMERA_MAX_DISTANCE_M:
+        # every frame's camera of a moving one (its track), else the one camera
+        moving = clip.camera_track is not None
+        E = clip.camera_track if moving else clip.extrinsics[None]
+        centres = -np.einsum("tji,tj->ti", E[:, :3, :3], E[:, :3, 3])
+        dists = np.linalg.norm(centres, axis=-1)
+        field = "camera_track" if moving else "extrinsics"
+
+        def at(f: int) -> str:
+            return f"{where}: frame {f}: field {field!r}" if moving else f"{where}: field {field!r}"
+
+        if (dists > CAMERA_MAX_DISTANCE_M).any():
+            f = int(np.argmax(dists > CAMERA_MAX_DISTANCE_M))
             raise FormatError(
-                f"{where}: field 'extrinsics': the camera is {dist:.4g} m from the world origin "
+                f"{at(f)}: the camera is {dists[f]:.4g} m from the world origin "
                 f"(more than {CAMERA_MAX_DISTANCE_M:g} m)"
             )
-        if centre[2] < CAMERA_MIN_Z_M:
+        if (centres[:, 2] < CAMERA_MIN_Z_M).any():
+            f = int(np.argmax(centres[:, 2] < CAMERA_MIN_Z_M))
             raise FormatError(
-                f"{where}: field 'extrinsics': the camera is {-centre[2]:.3g} m below the floor "
-                f"(world z = {centre[2]:.3g} m; z is up and the floor is z = 0)"
+                f"{at(f)}: the camera is {-centres[f, 2]:.3g} m below the floor "
+                f"(world z = {centres[f, 2]:.3g} m; z is up and the floor is z = 0)"
             )
-        if dist > CAMERA_USUAL_DISTANCE_M or centre[2] > CAMERA_USUAL_MAX_Z_M:
-            warnings.append(f"the camera is far away: {dist:.3g} m from the origin, {centre[2]:.3g} m high")
+        dist, high = float(dists.max()), float(centres[:, 2].max())
+        if dist > CAMERA_USUAL_DISTANCE_M or high > CAMERA_USUAL_MAX_Z_M:
+            warnings.append(f"the camera is far away: {dist:.3g} m from the origin, {high:.3g} m high"
+                            + (" (at its farthest and highest)" if moving else ""))
 
     for key, (lo, hi), (ulo, uhi), unit in (
         ("height_m", HEIGHT_RANGE_M, HEIGHT_USUAL_M, "m"),
