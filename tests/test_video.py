@@ -233,3 +233,29 @@ def test_bad_input_is_named_and_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"{cam}: field 'width': the camera file is for 1920x1080 images" in err
     assert not (tmp_path / "o1").exists() or not any((tmp_path / "o1").iterdir())
+
+
+def test_a_camera_track_file_gives_each_clip_its_frames_cameras(walk, tmp_path):
+    """A camera file with one camera per video frame (here the true camera, turned a little more
+    each frame about its own axis): the clip carries the track of its frames; a track of another
+    length is refused, naming the camera file."""
+    from jmocap.data.clip import load_clip
+    from jmocap.video.extract import VideoError, VideoOptions, extract_clips
+
+    cam = walk["camera"]
+    fx, fy, cx, cy = (float(v) for v in cam.intrinsics)
+    E = np.asarray(cam.extrinsics, np.float64)
+    track = np.repeat(E[None], FRAMES, 0)
+    for t in range(FRAMES):  # a slow roll, 0.2 degrees per frame
+        r = np.radians(0.2 * t)
+        track[t, :3] = np.array([[np.cos(r), -np.sin(r), 0], [np.sin(r), np.cos(r), 0], [0, 0, 1]]) @ E[:3]
+    camfile = tmp_path / "cam.json"
+    base = {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "width": W, "height": H}
+    camfile.write_text(json.dumps({**base, "extrinsics": track.tolist()}))
+    s = extract_clips(walk["path"], tmp_path / "out", VideoOptions(camera=camfile))
+    clip = load_clip(s["clips"][0])
+    start = clip.meta["first_frame"]
+    np.testing.assert_allclose(clip.camera_track, track[start:start + clip.num_frames], atol=1e-12)
+    camfile.write_text(json.dumps({**base, "extrinsics": track[:-1].tolist()}))
+    with pytest.raises(VideoError, match=f"cam.json: field 'extrinsics': the camera track has {FRAMES - 1} frames"):
+        extract_clips(walk["path"], tmp_path / "short", VideoOptions(camera=camfile))

@@ -245,3 +245,15 @@ def test_a_moving_camera_renders_each_frame_from_its_own_pose(gl, model):
     np.testing.assert_array_equal(got[1], moved[1])
     np.testing.assert_array_equal(got[2], still[2])
     assert np.abs(got[1].astype(int) - still[1].astype(int)).sum() > 0
+
+
+def test_the_overlay_of_a_moving_camera_draws_each_frame_from_its_own_pose(gl, model):
+    """``overlay_frames`` with a camera track (one per frame of q): frame t drawn from camera t."""
+    q = squat(model, 2)
+    a = Camera.look_at([3.0, -1.5, 1.4], [0.0, 0.0, 0.8], width=W, height=H, fx=400.0, dtype=np.float64)
+    b = Camera.look_at([3.0, -0.5, 1.4], [0.0, 0.0, 0.8], width=W, height=H, fx=400.0, dtype=np.float64)
+    moving = a.replace(extrinsics=np.stack([np.asarray(a.extrinsics), np.asarray(b.extrinsics)]))
+    blank = [np.zeros((H, W, 3), np.uint8)] * 2
+    got = list(viz.overlay_frames(model, q, iter(blank), moving))
+    np.testing.assert_array_equal(got[0], list(viz.overlay_frames(model, q, iter(blank), a))[0])
+    np.testing.assert_array_equal(got[1], list(viz.overlay_frames(model, q, iter(blank), b))[1])

@@ -654,7 +654,7 @@ def overlay_frames(
       frames: an iterable of (H, W, 3) uint8 RGB frames (consumed once: a video may be
         streamed), H and W the camera's image size.
       camera: the unbatched :class:`jmocap.camera.Camera` of the frames (its intrinsics, image
-        size and extrinsics).
+        size and extrinsics; a moving camera's extrinsics (T, 4, 4), one per frame of ``q``).
       keypoints2d: optional (T, J, 3) 2D keypoints of the same frames (pixels, confidence; 0 =
         missing), drawn with their bones (``layout``, or J = 25: BODY_25).
       alpha: opacity of the humanoid over the frame.
@@ -673,8 +673,9 @@ def overlay_frames(
     intr = np.asarray(camera.intrinsics, np.float64)
     isize = np.asarray(camera.image_size, np.float64)
     extr = np.asarray(camera.extrinsics, np.float64)
-    if intr.shape != (4,) or isize.shape != (2,) or extr.shape != (4, 4):
-        raise ValueError(f"{where}: camera must be unbatched, got intrinsics {intr.shape}")
+    if intr.shape != (4,) or isize.shape != (2,) or extr.shape not in ((4, 4), (T, 4, 4)):
+        raise ValueError(f"{where}: camera must be unbatched (its extrinsics one (4, 4) or one per frame of q, "
+                         f"(T, 4, 4)), got intrinsics {intr.shape}, extrinsics {extr.shape}")
     W, H = int(round(isize[0])), int(round(isize[1]))
     _size((W, H), where)
     kp = None
@@ -716,7 +717,7 @@ def overlay_frames(
                     mujoco.mj_kinematics(mj, d)
                     mujoco.mj_camlight(mj, d)
                     renderer.update_scene(d, camera=free_cam, scene_option=option)
-                    _set_pinhole(renderer.scene, intr, isize, extr, W, H)
+                    _set_pinhole(renderer.scene, intr, isize, extr[i] if extr.ndim == 3 else extr, W, H)
                     if quality == "fast":
                         renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
                         renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0

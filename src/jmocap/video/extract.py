@@ -21,7 +21,9 @@ distortion, R/t, rvec/tvec, ...; its width and height must be the video's) or el
 default intrinsics (f = 1000 px, principal point at the image centre) recorded in the clip's
 ``meta["assumed"]``; without extrinsics, ``jmocap reconstruct`` estimates the camera's tilt and
 height from the person (``jmocap.methods.floor``; the result's ``extrinsics_source``). Lens distortion is removed from the keypoints (as the sidecar readers
-do); the overlay is drawn through the pinhole camera.
+do); the overlay is drawn through the pinhole camera. A camera file whose extrinsics are given
+per frame (a moving camera's track: one per frame of the video) gives each person's clip the
+cameras of its own frames (``camera_track``), and the overlay draws frame t from camera t.
 """
 
 from __future__ import annotations
@@ -91,16 +93,18 @@ class VideoOptions:
 
 
 def _camera(video: Path, size: tuple[int, int], options: VideoOptions):
-    """(intrinsics, extrinsics | None, distortion | None, fps | None, assumed list, record)."""
+    """(intrinsics, extrinsics | None, distortion | None, fps | None, assumed list, record, camera
+    track | None): a camera file whose extrinsics are given per frame is a moving camera's track,
+    one per frame of the video."""
     if options.camera is None:
-        return default_intrinsics(*size), None, None, None, ["intrinsics"], {"camera": "assumed"}
+        return default_intrinsics(*size), None, None, None, ["intrinsics"], {"camera": "assumed"}, None
     side = read_camera_json(options.camera)
     if tuple(side["image_size"]) != tuple(size):
         w, h = side["image_size"]
         raise VideoError(f"{options.camera}: field 'width': the camera file is for {w}x{h} images, "
                          f"the video {video} is {size[0]}x{size[1]}")
     rec = {"camera": str(options.camera), "camera_convention": side["convention"]}
-    return side["intrinsics"], side["extrinsics"], side["distortion"], side["fps"], [], rec
+    return side["intrinsics"], side["extrinsics"], side["distortion"], side["fps"], [], rec, side.get("camera_track")
 
 
 def track_arrays(track: Track) -> dict[str, np.ndarray]:
@@ -159,7 +163,7 @@ def extract_clips(video: str | os.PathLike, out: str | os.PathLike, options: Vid
     out = Path(out)
     person = options.person_choice()
     info = probe_video(video)
-    intr, extr, dist, side_fps, assumed, cam_record = _camera(video, info.size, options)
+    intr, extr, dist, side_fps, assumed, cam_record, track = _camera(video, info.size, options)
     if options.fps is not None:
         fps, fps_source = float(options.fps), "argument"
     elif side_fps is not None:
@@ -185,6 +189,9 @@ def extract_clips(video: str | os.PathLike, out: str | os.PathLike, options: Vid
             f"{where}: no person found in {n} frames (detector score >= {options.track.min_detection_score}, "
             f"pose presence >= {options.track.min_presence}, at least {options.track.min_frames} frames)")
     chosen = choose_tracks(tracks, person, where)
+    if track is not None and len(track) != n:
+        raise VideoError(f"{options.camera}: field 'extrinsics': the camera track has {len(track)} frames but the "
+                         f"video {video} has {n}: one camera per frame of the video")
 
     stem = safe_name(video.stem, max_bytes=80)
     summary: dict[str, Any] = {
@@ -224,8 +231,10 @@ def extract_clips(video: str | os.PathLike, out: str | os.PathLike, options: Vid
             meta["assumed"] = list(assumed)
         if dist is not None:
             meta["undistorted"] = [float(v) for v in dist]
+        own = None if track is None else track[tr.start:tr.start + len(kp)]  # the person's frames' cameras
         clip = Clip(name=name, layout="body25", fps=fps, keypoints=kp, intrinsics=intr,
-                    image_size=np.asarray(info.size), extrinsics=extr, height_m=options.height_m, meta=meta)
+                    image_size=np.asarray(info.size), extrinsics=extr if own is None else own[0], camera_track=own,
+                    height_m=options.height_m, meta=meta)
         raw = np.concatenate([a["points"][:, :33], a["z"][:, :33, None], a["visibility"][:, :33, None],
                               a["presence"][:, :33, None]], axis=-1)
         arrays = clip_to_arrays(clip)
@@ -267,7 +276,8 @@ def write_overlays(video: str | os.PathLike, clips: list[str | os.PathLike], res
         fx, fy, cx, cy = (float(v) for v in r["intrinsics"])
         w2, h2 = max(8, round(W * k)), max(8, round(H * k))
         sx, sy = w2 / W, h2 / H
-        cam = Camera.from_intrinsics(fx * sx, fy * sy, cx * sx, cy * sy, w2, h2, extrinsics=r["extrinsics"],
+        extrinsics = r["camera_track"] if r.get("camera_track") is not None else r["extrinsics"]  # moving: per frame
+        cam = Camera.from_intrinsics(fx * sx, fy * sy, cx * sx, cy * sy, w2, h2, extrinsics=extrinsics,
                                      dtype=np.float64)
         kp = np.array(clip.keypoints, np.float64)
         kp[..., 0] *= sx
