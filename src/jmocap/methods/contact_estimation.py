@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
+from jmocap.camera import Camera, project, unproject
 from jmocap.inputs import ClipInputs
 from jmocap.layouts import get_layout
 from jmocap.nets import ContactMLP
@@ -155,19 +156,14 @@ def stabilise_window(xy: Array, frames: Array, intrinsics: Array, cameras: Array
     frame's. A camera's rotation is undone exactly (the depth drops out); its translation to
     the precision of the depth (the points of one body are taken at one depth). Frames whose
     depth is below 0.1 m, and points that would land behind the target camera, stay as seen."""
-    fx, fy, cx, cy = (intrinsics[..., i] for i in range(4))
     dtype = xy.dtype
-    d = depth[frames].astype(dtype)[..., None]  # (T, w, 1)
-    ray = jnp.stack([(xy[..., 0] - cx) / fx, (xy[..., 1] - cy) / fy, jnp.ones_like(xy[..., 0])], -1)
-    Xs = ray * d[..., None]  # (T, w, K, 3) in the source frame's camera
-    Es = cameras[frames].astype(dtype)  # (T, w, 4, 4)
-    Xw = jnp.einsum("twji,twkj->twki", Es[..., :3, :3], Xs - Es[..., None, :3, 3])
-    Et = cameras.astype(dtype)
-    Xt = jnp.einsum("tij,twkj->twki", Et[:, :3, :3], Xw) + Et[:, None, None, :3, 3]
-    ok = (d[..., None] > 0.1) & (Xt[..., 2:] > 1e-3)
-    z = jnp.where(ok, Xt[..., 2:], 1.0)
-    uv = jnp.concatenate([fx * Xt[..., :1] / z + cx, fy * Xt[..., 1:2] / z + cy], -1)
-    return jnp.where(ok, uv, xy)
+    intrinsics, cameras = jnp.asarray(intrinsics, dtype), jnp.asarray(cameras, dtype)
+    size = jnp.zeros(2, dtype)
+    d = jnp.broadcast_to(depth[frames].astype(dtype)[..., None], xy.shape[:-1])  # (T, w, K)
+    Xw = unproject(Camera(intrinsics, size, cameras[frames]), xy, d)  # through each point's own frame
+    uv, z = project(Camera(intrinsics, size, cameras[:, None]), Xw, return_depth=True)  # the target's
+    ok = (d > 0.1) & (z > 1e-3)
+    return jnp.where(ok[..., None], uv, xy)
 
 
 def contact_features(keypoints: Array, image_size: Array, mask: Array, layout: str = "body25",

@@ -15,10 +15,12 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
 
 from jmocap.camera import Camera
 from jmocap.data.synthetic.bridge import np64
 from jmocap.data.synthetic.errors import GenerationError
+from jmocap.data.synthetic.rotations import _rx, _ry, _rz
 
 
 @dataclass(frozen=True)
@@ -87,6 +89,36 @@ def project_points(intrinsics, extrinsics, X):
     return uv, z
 
 
+def _draw_image(rng: np.random.Generator, cfg: CameraConfig) -> tuple[int, int, float]:
+    """One draw of the image size (W, H) and the focal length f (pixels) of ``cfg``."""
+    W, H = cfg.image_sizes[int(rng.integers(len(cfg.image_sizes)))]
+    if cfg.focal_equiv_mm is None:
+        f = float(np.exp(rng.uniform(np.log(cfg.focal_px[0]), np.log(cfg.focal_px[1]))))
+    else:
+        f_mm = float(np.exp(rng.uniform(np.log(cfg.focal_equiv_mm[0]), np.log(cfg.focal_equiv_mm[1]))))
+        f = f_mm / 36.0 * max(W, H)
+    return W, H, f
+
+
+def _inside_share(K, E, points, W, H) -> tuple[float, float]:
+    """The share of ``points`` projecting inside the W x H image of camera (K, E) (one camera, or
+    a track with points (T, ..., 3)) and their smallest depth."""
+    uv, z = project_points(K, E, points)
+    inside = (uv[..., 0] >= 0) & (uv[..., 0] < W) & (uv[..., 1] >= 0) & (uv[..., 1] < H)
+    return float(inside.mean()), float(z.min())
+
+
+def _shrink_focal(K, size, E, points, cfg: CameraConfig):
+    """The last resort of the samplers: the focal length shortened around the principal point
+    (by 10 % at a time, at most 40 times) until ``min_visible`` of ``points`` fit the image."""
+    for _ in range(40):
+        if _inside_share(K, E, points, size[0], size[1])[0] >= cfg.min_visible:
+            break
+        K = K.copy()
+        K[:2] *= 0.9
+    return K
+
+
 def sample_camera(rng: np.random.Generator, points: np.ndarray, cfg: CameraConfig = CameraConfig()):
     """A static camera looking at the subject whose world joints over the clip are ``points``
     (T, J, 3). Resamples until ``min_visible`` of the joint-frames project inside the image and
@@ -96,12 +128,7 @@ def sample_camera(rng: np.random.Generator, points: np.ndarray, cfg: CameraConfi
     centre = (flat.min(axis=0) + flat.max(axis=0)) / 2
     best = None
     for attempt in range(cfg.tries):
-        W, H = cfg.image_sizes[int(rng.integers(len(cfg.image_sizes)))]
-        if cfg.focal_equiv_mm is None:
-            f = float(np.exp(rng.uniform(np.log(cfg.focal_px[0]), np.log(cfg.focal_px[1]))))
-        else:
-            f_mm = float(np.exp(rng.uniform(np.log(cfg.focal_equiv_mm[0]), np.log(cfg.focal_equiv_mm[1]))))
-            f = f_mm / 36.0 * max(W, H)
+        W, H, f = _draw_image(rng, cfg)
         dist = float(rng.uniform(*cfg.distance_m))
         cam_h = float(rng.uniform(*cfg.height_m))
         az = float(rng.uniform(-np.pi, np.pi))
@@ -120,11 +147,9 @@ def sample_camera(rng: np.random.Generator, points: np.ndarray, cfg: CameraConfi
         cx = W / 2 + float(rng.uniform(-1, 1)) * cfg.principal_jitter * W
         cy = H / 2 + float(rng.uniform(-1, 1)) * cfg.principal_jitter * H
         K = np.array([f, f, cx, cy])
-        uv, z = project_points(K, E, flat)
-        if z.min() < cfg.min_depth_m:
+        frac, zmin = _inside_share(K, E, flat, W, H)
+        if zmin < cfg.min_depth_m:
             continue
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-        frac = float(inside.mean())
         cand = (K, np.array([W, H]), E, dict(distance_m=dist, height_m=cam_h, azimuth=az, attempts=attempt + 1,
                                                  **extra))
         if frac >= cfg.min_visible:
@@ -134,16 +159,8 @@ def sample_camera(rng: np.random.Generator, points: np.ndarray, cfg: CameraConfi
     if best is None:
         raise GenerationError("no camera placement keeps the subject in front of the camera")
     K, size, E, info = best[1]
-    # shrink the focal length around the principal point until the subject fits
-    for _ in range(40):
-        uv, _z = project_points(K, E, flat)
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < size[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < size[1])
-        if inside.mean() >= cfg.min_visible:
-            break
-        K = K.copy()
-        K[:2] *= 0.9
     info["focal_shrunk"] = True
-    return K, size, E, info
+    return _shrink_focal(K, size, E, flat, cfg), size, E, info
 
 
 #: the moving cameras of :func:`sample_moving_camera`
@@ -151,31 +168,19 @@ MOVING_KINDS = ("handheld", "pan", "dolly", "orbit")
 
 
 def _smooth(x: np.ndarray, sigma_frames: float) -> np.ndarray:
-    """Gaussian smoothing along axis 0 (edges padded by reflection): a camera operator's lag."""
+    """Gaussian smoothing along axis 0 (3 standard deviations either side, edges mirrored; a
+    series shorter than that repeats its end frames): a camera operator's lag."""
     if sigma_frames <= 0:
         return x
     r = int(np.ceil(3 * sigma_frames))
-    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma_frames) ** 2)
-    k /= k.sum()
-    pad = np.pad(x, [(r, r)] + [(0, 0)] * (x.ndim - 1), mode="reflect" if len(x) > r else "edge")
-    return np.stack([np.tensordot(k, pad[i:i + 2 * r + 1], axes=(0, 0)) for i in range(len(x))])
+    return gaussian_filter1d(np.asarray(x, float), sigma_frames, axis=0, radius=r,
+                             mode="mirror" if len(x) > r else "nearest")
 
 
 def _smooth_noise(rng, T: int, dims: int, sigma_frames: float) -> np.ndarray:
     """Unit-variance Gaussian noise (T, dims) smoothed over ``sigma_frames`` (hand tremor, drift)."""
     n = _smooth(rng.standard_normal((T + 1, dims)), sigma_frames)[:T]
     return n / max(float(n.std()), 1e-9)
-
-
-def _rotation_xyz(angles: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) camera-frame rotations of small angles (T, 3) about x, y, z (radians)."""
-    out = []
-    for a, b, c in angles:
-        Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-        Ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
-        Rz = np.array([[np.cos(c), -np.sin(c), 0], [np.sin(c), np.cos(c), 0], [0, 0, 1]])
-        out.append(Rz @ Ry @ Rx)
-    return np.stack(out)
 
 
 def _track_path(rng, kind: str, points: np.ndarray, fps: float, cfg: CameraConfig):
@@ -272,11 +277,7 @@ def sample_moving_camera(rng: np.random.Generator, points: np.ndarray, fps: floa
     Returns (intrinsics (4,), image_size (2,), camera track (T, 4, 4) world -> camera, info)."""
     best = None
     for attempt in range(cfg.tries):
-        W, H = cfg.image_sizes[int(rng.integers(len(cfg.image_sizes)))]
-        if cfg.focal_equiv_mm is None:
-            f = float(np.exp(rng.uniform(np.log(cfg.focal_px[0]), np.log(cfg.focal_px[1]))))
-        else:
-            f = float(np.exp(rng.uniform(np.log(cfg.focal_equiv_mm[0]), np.log(cfg.focal_equiv_mm[1])))) / 36.0 * max(W, H)
+        W, H, f = _draw_image(rng, cfg)
         eye, target, shake, info = _track_path(rng, kind, points, fps, cfg)
         view = (target - eye) / np.linalg.norm(target - eye, axis=-1, keepdims=True)
         if np.abs(view[:, 2]).max() > 0.98:
@@ -285,15 +286,14 @@ def sample_moving_camera(rng: np.random.Generator, points: np.ndarray, fps: floa
         roll = math.radians(float(rng.uniform(-cfg.roll_deg, cfg.roll_deg))) if cfg.roll_deg > 0 else 0.0
         shake = shake + np.array([0.0, 0.0, roll])
         if np.any(shake != 0):  # the camera turned about its own axes: E <- R_shake E
-            track[:, :3, :] = np.einsum("tij,tjk->tik", _rotation_xyz(shake), track[:, :3, :])
+            turn = _rz(shake[:, 2]) @ _ry(shake[:, 1]) @ _rx(shake[:, 0])  # about x, then y, then z
+            track[:, :3, :] = np.einsum("tij,tjk->tik", turn, track[:, :3, :])
         cx = W / 2 + float(rng.uniform(-1, 1)) * cfg.principal_jitter * W
         cy = H / 2 + float(rng.uniform(-1, 1)) * cfg.principal_jitter * H
         K = np.array([f, f, cx, cy])
-        uv, z = project_points(K, track, points)
-        if z.min() < cfg.min_depth_m:
+        frac, zmin = _inside_share(K, track, points, W, H)
+        if zmin < cfg.min_depth_m:
             continue
-        inside = (uv[..., 0] >= 0) & (uv[..., 0] < W) & (uv[..., 1] >= 0) & (uv[..., 1] < H)
-        frac = float(inside.mean())
         cand = (K, np.array([W, H]), track, dict(info, attempts=attempt + 1, roll_deg=math.degrees(roll)))
         if frac >= cfg.min_visible:
             return cand
@@ -302,12 +302,5 @@ def sample_moving_camera(rng: np.random.Generator, points: np.ndarray, fps: floa
     if best is None:
         raise GenerationError(f"no {kind} camera keeps the subject in front of the camera")
     K, size, track, info = best[1]
-    for _ in range(40):
-        uv, _z = project_points(K, track, points)
-        inside = (uv[..., 0] >= 0) & (uv[..., 0] < size[0]) & (uv[..., 1] >= 0) & (uv[..., 1] < size[1])
-        if inside.mean() >= cfg.min_visible:
-            break
-        K = K.copy()
-        K[:2] *= 0.9
     info["focal_shrunk"] = True
-    return K, size, track, info
+    return _shrink_focal(K, size, track, points, cfg), size, track, info
