@@ -108,7 +108,7 @@ def _initial(model, T=20, jitter=0.0, seed=0):
     q += jitter * rng.normal(size=q.shape).astype(np.float32) * (np.arange(model.nq) != 3)
     q[:, 3:7] /= np.linalg.norm(q[:, 3:7], axis=-1, keepdims=True)
     J = 25
-    return D.Initial(jnp.asarray(q), jnp.zeros((T, J, 3)), jnp.zeros((T, 4)), jnp.asarray(q))
+    return D.Initial(jnp.asarray(q), jnp.zeros((T, J, 3)), jnp.zeros((T, 4)), jnp.asarray(q), jnp.full((T, 4), 0.5))
 
 
 def test_attention_weights_sum_to_one_and_a_jittery_target_gives_a_smooth_motion(model):
@@ -193,7 +193,7 @@ def test_training_window_loss_is_finite_and_its_gradient_matches_finite_differen
         init = _initial(model, T)
         E, _ = _track(T)
         q = np.asarray(init.q_cam, np.float64)
-        d = dict(q_cam=q, p_rr=np.zeros((T, 25, 3)), logits=np.zeros((T, 4)), q_world=q, track=E,
+        d = dict(q_cam=q, p_rr=np.zeros((T, 25, 3)), logits=np.zeros((T, 4)), q_world=q, contacts=np.full((T, 4), 0.3), track=E,
                  gt_q=q, gt_q_cam=q, gt_kp_cam=np.zeros((T, 25, 3)) + [0, 0, 4.0], gt_2d=np.zeros((T, 25, 2)) + 600,
                  gt_contacts=np.zeros((T, 4)), gt_omega=np.zeros((T, 3)), gt_accel=np.zeros((T, 3)),
                  intrinsics=np.array([1000.0, 1000.0, 640.0, 360.0]), image_size=np.array([1280.0, 720.0]),
@@ -240,3 +240,71 @@ def test_moving_a_motion_moves_its_estimated_track_with_it():
         after = np.einsum("tij,tj->ti", Em[:, :3, :3], np.asarray(moved.q[:, 0:3])) + Em[:, :3, 3]
         np.testing.assert_allclose(after, before, atol=1e-12)
         np.testing.assert_allclose(np.asarray(moved.q[:, 0:3]), q[:, 0:3] @ R.T + t, atol=1e-12)
+
+
+def test_shipped_dnd_runs_in_the_batch_engine_and_reads_only_the_first_camera(tmp_path):
+    """``jmocap reconstruct --method dnd``'s engine on a hand-held clip: a finite world motion and
+    an estimated camera track that starts at the clip's first camera; the clip's own track after
+    its first frame is never read (the same result with the track replaced by its first frame)."""
+    from jmocap.batch import BatchOptions, reconstruct_archive
+    from jmocap.data.clip import save_clip
+    from jmocap.data.synthetic import SynthConfig, generate_clip
+    from jmocap.results import load_result
+    from jmocap.weights import check_params, load_run_params
+
+    clip = generate_clip(31, 0, SynthConfig(frames=48, moving_camera=("handheld",)))
+    still = clip.replace(camera_track=None, meta={**clip.meta})
+    params, config = load_run_params(None, method="dnd")
+    check_params(params, config, "dnd")  # the shipped networks come from their own file
+    out = {}
+    for name, c in (("moving", clip), ("still", still)):
+        src = tmp_path / f"in_{name}"
+        src.mkdir()
+        save_clip(src / f"{c.name}.npz", c)
+        reconstruct_archive(src, tmp_path / name, params, config, BatchOptions(batch=1, bucket=16), method="dnd")
+        out[name] = load_result(tmp_path / name / f"{c.name}.npz")
+    q = out["moving"]["q"]
+    assert np.isfinite(q).all() and np.isfinite(out["moving"]["grf"]).all()
+    np.testing.assert_allclose(q, out["still"]["q"], atol=1e-5)
+    # the root starts where TPNet puts it in the first camera, at a standing height
+    assert 0.5 < q[0, 2] < 1.5
+
+
+@pytest.mark.slow
+def test_training_resumes_where_it_stopped(tmp_path, monkeypatch):
+    """An interrupted training run, re-run, ends with the networks of an uninterrupted one (the
+    checkpoint holds the parameters, optimiser state, step, key and the window sampler)."""
+    from jmocap.data.clip import save_clip
+    from jmocap.data.synthetic import SynthConfig, generate_clip
+    from jmocap.train_dnd import DnDData, DnDTrainConfig, train
+    from jmocap.weights import load_run_params
+
+    data = tmp_path / "data"
+    data.mkdir()
+    for i in range(2):
+        c = generate_clip(5, i, SynthConfig(frames=40, moving_camera=("pan", "dolly")))
+        save_clip(data / f"{c.name}.npz", c)
+    params, kin = load_run_params(None, method="kinematic")
+    base = SMALL.replace(layout=kin.layout, nets=kin.nets)
+
+    def cfg(out):
+        return DnDTrainConfig(data=str(data), out=str(out), steps=4, batch=2, context=32, warmup=8,
+                              checkpoint_every=2, log_every=1)
+
+    whole = train(cfg(tmp_path / "whole"), params, base, progress=False)
+    calls = {"n": 0}
+    sample = DnDData.sample
+
+    def interrupted(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return sample(self, *a, **k)
+
+    monkeypatch.setattr(DnDData, "sample", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg(tmp_path / "cut"), params, base, progress=False)
+    monkeypatch.setattr(DnDData, "sample", sample)
+    resumed = train(cfg(tmp_path / "cut"), params, base, progress=False)
+    for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(resumed), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)

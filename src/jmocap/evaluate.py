@@ -219,8 +219,11 @@ def _evaluate_clip(clip: Clip, pred: dict, gt: dict, length: int, pred_mass: flo
     mask = np.arange(length) < clip.num_frames
     pred = dict(pred)
     diagnostics = pred.pop("diagnostics", None) or {}
+    own_track = pred.pop("camera_track", None)
     camera = M.clip_camera(clip, length)
     pred_camera = camera.replace(extrinsics=camera.extrinsics[0]) if static_camera and clip.moving_camera else None
+    if own_track is not None and clip.moving_camera:  # the method estimated the camera's motion
+        pred_camera = camera.replace(extrinsics=jax.numpy.asarray(own_track))
     out = M.evaluate_arrays(
         pred, gt, fps=clip.fps, mask=mask, camera=camera, root=clip.layout_spec.root_indices,
         pred_mass=pred_mass, gt_mass=clip.mass_kg or subject_model(clip).total_mass, pred_camera=pred_camera,
@@ -400,6 +403,8 @@ def _predict(params, batch: _Batch, method: str, cfg) -> list[tuple[dict, float,
         pred["contact_prob"] = motion.contact_prob[i]
         if motion.diagnostics is not None:
             pred["diagnostics"] = {k: v[i] for k, v in motion.diagnostics.items()}
+        if motion.camera_track is not None:
+            pred["camera_track"] = motion.camera_track[i]
         if methods_.get_method(method).estimates_forces:  # the kinematic method estimates none
             pred["grf"] = motion.grf[i]
             pred["tau"] = motion.tau[i]
@@ -552,7 +557,7 @@ def cmd_eval(args) -> int:
             name, _, path = item.partition("=")
             if name not in method_names() or name == GROUND_TRUTH or not path:
                 raise ValueError(f"--method-params expects METHOD=PATH with a known method, got {item!r}")
-            own[name] = load_run_params(path, method="physcap")
+            own[name] = load_run_params(path, method=name)
         cfg = EvalConfig(methods, args.batch_size, args.max_clips, args.seed, not args.quiet,
                          subject_height=getattr(args, "subject_height", "given"),
                          camera=getattr(args, "camera", "given"))

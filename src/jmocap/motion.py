@@ -29,6 +29,10 @@ class Motion:
     # per-clip scalars (name -> () array; a batch adds a leading axis) that a method reports about
     # its solve, e.g. an optimiser's convergence report; None for methods without one
     diagnostics: dict[str, Array] | None = None
+    # (T, 4, 4) world -> camera of every frame as the method estimated it (``dnd``, for a camera
+    # whose motion is unknown): the camera the estimate's camera-frame pose is seen from; None:
+    # the input's cameras
+    camera_track: Array | None = None
 
     @property
     def num_frames(self) -> int:

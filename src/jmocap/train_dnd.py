@@ -47,7 +47,7 @@ from jmocap.methods import stages as S
 from jmocap.model import Model, character
 from jmocap.physics.rotations import mat_to_quat, quat_to_mat
 
-LOSS_WEIGHTS = {"3d": 5.0, "2d": 1.0, "trans": 1.0, "con": 0.1, "reg": 0.1, "cam": 0.5, "impulse": 1.0}
+LOSS_WEIGHTS = {"3d": 5.0, "2d": 1.0, "trans": 1.0, "con": 0.5, "reg": 0.1, "cam": 0.5, "impulse": 1.0}
 
 
 @dataclass(frozen=True)
@@ -77,12 +77,13 @@ def _camera_frame(E: jnp.ndarray, q: jnp.ndarray) -> jnp.ndarray:
 
 def _prepare(params, model: Model, inputs: ClipInputs, gt_q, kp_w, cfg: D.DnDConfig) -> dict:
     """One clip's (padded) arrays: the frozen backbone's output and the camera-frame truth."""
-    init = D.initial_motion(params, model, inputs, cfg)
+    init = D.initial_motion(params, model, D.seen_inputs(inputs, cfg), cfg)
     E = inputs.world_to_camera()
     kp_c = jnp.einsum("tij,tkj->tki", E[:, :3, :3], kp_w) + E[:, None, :3, 3]
     omega, _, accel = D.track_motion(E, inputs.fps)
     cam = Camera(inputs.intrinsics, inputs.image_size, jnp.eye(4, dtype=kp_w.dtype))
-    return dict(q_cam=init.q_cam, p_rr=init.p_rr, logits=init.contact_logits, q_world=init.q_world, track=E,
+    return dict(q_cam=init.q_cam, p_rr=init.p_rr, logits=init.contact_logits, q_world=init.q_world,
+                contacts=init.contacts, track=E,
                 gt_q_cam=_camera_frame(E, gt_q), gt_kp_cam=kp_c, gt_2d=project(cam, kp_c),
                 gt_omega=omega, gt_accel=accel)
 
@@ -138,7 +139,7 @@ class DnDData:
         for _ in range(batch):
             c = self.clips[rng.integers(len(self.clips))]
             s = int(rng.integers(0, c["T"] - frames + 1))
-            item = {k: c[k][s : s + frames] for k in ("q_cam", "p_rr", "logits", "q_world", "track", "gt_q", "gt_q_cam",
+            item = {k: c[k][s : s + frames] for k in ("q_cam", "p_rr", "logits", "q_world", "contacts", "track", "gt_q", "gt_q_cam",
                                                          "gt_kp_cam", "gt_2d", "gt_contacts", "gt_omega", "gt_accel")}
             for k in ("intrinsics", "image_size", "fps"):
                 item[k] = c[k]
@@ -157,7 +158,7 @@ def window_loss(net: dict, model: Model, d: dict, key, cfg: D.DnDConfig, warmup:
     dtype = d["q_cam"].dtype
     T = d["q_cam"].shape[0]
     mask = jnp.ones(T, bool)
-    init = D.Initial(d["q_cam"], d["p_rr"], d["logits"], d["q_world"])
+    init = D.Initial(d["q_cam"], d["p_rr"], d["logits"], d["q_world"], d["contacts"])
     E = d["track"]
     x = D.features(model, init, E[0, :3, :3] @ jnp.asarray(model.gravity, dtype), mask)
     phys = D.physical_properties(net, model, x, cfg)
@@ -220,9 +221,8 @@ def train(config: DnDTrainConfig, params: dict, base: D.DnDConfig, *, progress: 
     _, changes = resolve(config.variant)
     cfg = base.replace(**changes)
     (out / "config.json").write_text(json.dumps({"train": asdict(config), "cycle": _cfg_dict(cfg)}, indent=2))
-    data = DnDData(config.data, config, params, cfg, progress)
     key = jax.random.PRNGKey(config.seed)
-    net = D.init_params(key, data.models[0], cfg)["dnd"]
+    net = D.init_params(key, character(), cfg)["dnd"]  # the networks' shapes do not depend on the subject
     schedule = optax.cosine_decay_schedule(config.lr, config.steps, alpha=0.05)
     # a step whose gradient is not finite is skipped (counted in the log), not applied
     optimizer = optax.apply_if_finite(
@@ -237,6 +237,9 @@ def train(config: DnDTrainConfig, params: dict, base: D.DnDConfig, *, progress: 
         opt_state = serialization.from_state_dict(opt_state, r["opt_state"])
         start, key = int(r["step"]), jnp.asarray(r["key"])
         rng.bit_generator.state = json.loads(r["rng"])
+    if start >= config.steps:  # a finished run
+        return net
+    data = DnDData(config.data, config, params, cfg, progress)
     step = make_step(cfg, optimizer, config.warmup, config.weights)
     log = open(out / "log.jsonl", "a")
     t0 = time.time()

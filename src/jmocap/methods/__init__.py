@@ -5,6 +5,10 @@
 ``physcap``               Neural PhysCap's dynamic cycle (:mod:`jmocap.methods.physcap`)
 ``pip``                   PIP's dual PD + tracking QP: physical dynamics (:mod:`jmocap.methods.pip`)
 ``trajopt``               offline whole-clip fit + physics trajectory optimisation (:mod:`jmocap.methods.trajopt`)
+``dnd``                   D&D for an unknown moving camera: inertial force control, PCT, attentive PD
+                          (:mod:`jmocap.methods.dnd`); variants ``dnd_residual_force``,
+                          ``dnd_discrete_contacts``, ``dnd_meta_pd`` (Tab. 3's ablations, each
+                          with its own trained weights) and ``dnd_known_track``
 variants of ``physcap``   ``physionical`` (every stage on), ``fixed_gains``, ``no_grfnet``,
                           ``no_hard_constraint``, ``no_canonicalisation`` (the paper's ablations)
 ========================  ==================================================================
@@ -13,7 +17,8 @@ variants of ``physcap``   ``physionical`` (every stage on), ``fixed_gains``, ``n
 inputs, config)`` is the pure function of one clip. See :mod:`jmocap.methods.base`.
 """
 
-from jmocap.methods import kinematic, physcap, pip, trajopt  # noqa: F401  (registers the methods)
+from jmocap.methods import kinematic, physcap, pip, trajopt  # noqa: F401, I001  (registers the methods)
+from jmocap.methods import dnd  # noqa: F401, E402  (registered after them: the listing's order)
 from jmocap.methods.base import (
     Method,
     Variant,

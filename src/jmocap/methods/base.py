@@ -74,6 +74,9 @@ class Method:
     #: field it knows; else only these (e.g. the learned stage's), so that another method's
     #: settings in a shared file (physcap's ``iterations``) do not replace this method's defaults
     from_weights: tuple[str, ...] | None = None
+    #: top-level entries of the parameters that the method loads from its own shipped file when
+    #: the parameters lack them (``dnd``'s networks, trained apart from the default weights)
+    shipped_networks: tuple[str, ...] = ()
 
     def weights_config(self, fields: Mapping[str, Any] | None) -> dict[str, Any]:
         """The part of a weights' training config (a flat dict of fields) this method takes."""

@@ -100,6 +100,11 @@ class DnDConfig(KinematicConfig):
     # share of a contact point's height above (below) the floor that the constrained update
     # takes out per step while it is in contact (jmocap's; 0: D&D's eq. 15, velocities only)
     floor_recovery: float = 0.2
+    # the constrained update's cost of changing the camera-frame pose's velocity relative to the
+    # world root's, per unit kinetic energy: the pose is what the camera sees, the world velocity
+    # what is unknown, so the contacts move the body in the world rather than bend the legs (1:
+    # the plain kinetic-energy metric, where a pinned foot mostly drags its light leg back)
+    pose_stiffness: float = 100.0
 
 
 def _check(config: DnDConfig) -> None:
@@ -149,7 +154,8 @@ def num_features(model: Model, config: DnDConfig) -> int:
     J = get_layout(config.layout).num_joints
     n_h = model.topo.hinge_qadr.size
     per = 3 + 6 + n_h + 3 * J  # root position, orientation (6D), joint angles, root-relative joints
-    return 2 * per + 3  # and their per-frame changes, and gravity's direction in the first camera
+    # and their per-frame changes, gravity's direction in the first camera, the estimator's contacts
+    return 2 * per + 3 + NUM_CONTACTS
 
 
 def init_params(key: Array, model: Model, config: DnDConfig = DnDConfig()) -> dict:  # noqa: B008
@@ -195,14 +201,29 @@ class Initial:
 
     q_cam: Array  # (T, nq) root position and orientation relative to the camera, joint angles
     p_rr: Array  # (T, J, 3) root-relative joints, camera axes
-    contact_logits: Array  # (T, 4) TPNet's (not used by D&D, kept for the Motion)
-    q_world: Array  # (T, nq) TPNet's world pose through the clip's cameras (the Motion's q_hat)
+    contact_logits: Array  # (T, 4) TPNet's (not used by D&D)
+    q_world: Array  # (T, nq) TPNet's world pose through the first frame's camera (the Motion's q_hat)
+    contacts: Array  # (T, 4) the contact estimator's probabilities (jmocap.methods.contact_estimation)
 
 
 def initial_motion(params: dict, model: Model, inputs: ClipInputs, config: DnDConfig) -> Initial:
+    """TPNet's pose in each frame's camera, and the contact estimator's probabilities (Rempe et
+    al.'s MLP, shipped; its windows are seen from the cameras ``inputs`` give: D&D passes the
+    first frame's camera for all, the track being unknown)."""
+    from jmocap.methods import contact_estimation as CE
+
     tp = S.target_pose(params, model, inputs, config)
     q_cam = tp.q_hat.at[:, 0:3].set(tp.trans_cam).at[:, 3:7].set(mat_to_quat(tp.rot_cam))
-    return Initial(q_cam, tp.p_rr, tp.contact_logits, tp.q_hat)
+    contacts = CE.estimate_contacts(CE.contact_params(params), inputs, config.layout, depth=tp.trans_cam[:, 2])
+    return Initial(q_cam, tp.p_rr, tp.contact_logits, tp.q_hat, contacts)
+
+
+def seen_inputs(inputs: ClipInputs, config: DnDConfig) -> ClipInputs:
+    """What D&D reads of the clip's cameras: the first frame's camera only, unless the variant
+    uses a known track (``camera_motion="track"``)."""
+    if config.camera_motion == "track":
+        return inputs
+    return inputs.with_static_camera(jnp.asarray(inputs.world_to_camera())[..., 0, :, :])
 
 
 def last_real(mask: Array) -> Array:
@@ -214,8 +235,9 @@ def last_real(mask: Array) -> Array:
 
 def features(model: Model, init: Initial, gravity_cam0: Array, mask: Array) -> Array:
     """(T, F) the networks' input: the initial motion's root position (x/z, y/z, log z),
-    orientation (6D), joint angles, root-relative joints, their per-frame changes, and gravity's
-    direction in the first frame's camera. Padding frames repeat the last real frame."""
+    orientation (6D), joint angles, root-relative joints, their per-frame changes, gravity's
+    direction in the first frame's camera and the contact estimator's logits. Padding frames
+    repeat the last real frame."""
     idx = last_real(mask)
     q = init.q_cam[idx]
     p_rr = init.p_rr[idx]
@@ -226,7 +248,13 @@ def features(model: Model, init: Initial, gravity_cam0: Array, mask: Array) -> A
     per = jnp.concatenate([pos, rot, q[:, model.topo.hinge_qadr], p_rr.reshape(T, -1)], -1)
     delta = jnp.concatenate([jnp.zeros_like(per[:1]), per[1:] - per[:-1]]) * 10.0
     g = jnp.broadcast_to(gravity_cam0 / GRAVITY, (T, 3))
-    return jnp.concatenate([per, delta, g], -1)
+    return jnp.concatenate([per, delta, g, estimator_logits(init.contacts[idx])], -1)
+
+
+def estimator_logits(p: Array) -> Array:
+    """The contact estimator's probabilities as logits, bounded (+-4)."""
+    p = jnp.clip(p, 0.018, 0.982)
+    return jnp.log(p) - jnp.log1p(-p)
 
 
 @struct.dataclass
@@ -252,6 +280,8 @@ class Control:
 
 
 def physical_properties(net: dict, model: Model, x: Array, config: DnDConfig) -> Physical:
+    """DyNet over the clip. Its contact logits refine the estimator's (the last input
+    features): a fresh DyNet's contacts are the estimator's."""
     out = ClipConvNet(dynet_outputs(), config.channels, config.depth).apply({"params": net["dynet"]}, x)
     T = x.shape[0]
     weight = S.body_weight(model, x.dtype)
@@ -263,7 +293,7 @@ def physical_properties(net: dict, model: Model, x: Array, config: DnDConfig) ->
         omega, accel = jnp.zeros_like(omega), jnp.zeros_like(accel)
     grf = weight * 1.5 * jnp.tanh(o[2].reshape(T, NUM_CONTACTS, 3) / 6.0)
     eta = weight * 0.5 * jnp.tanh(o[4] / 5.0)
-    return Physical(omega, accel, grf, o[3], eta)
+    return Physical(omega, accel, grf, x[:, -NUM_CONTACTS:] + o[3], eta)
 
 
 def attention_average(q: Array, weights: Array, W: int) -> Array:
@@ -425,7 +455,7 @@ def step(model: Model, state: State, f: FrameInput, dt, config: DnDConfig) -> tu
     acc_w = R.T @ (f.eta + force.sum(0)) / m + jnp.asarray(model.gravity, dtype)
     vel_free = state.vel + dt * acc_w
     # eq. 15, in the kinetic-energy metric (M for the pose, m for the root's world velocity)
-    metric = jnp.zeros((model.nv + 3, model.nv + 3), dtype).at[: model.nv, : model.nv].set(M)
+    metric = jnp.zeros((model.nv + 3, model.nv + 3), dtype).at[: model.nv, : model.nv].set(config.pose_stiffness * M)
     metric = metric.at[model.nv :, model.nv :].set(m * jnp.eye(3, dtype=dtype))
     # jmocap's addition: the floor is known (the world of the first frame's camera), so contact
     # points in contact are also drawn to it, a share ``floor_recovery`` of their height per step
@@ -513,6 +543,7 @@ def rollout(params: dict, model: Model, inputs: ClipInputs, config: DnDConfig, *
     output (training precomputes it: the backbone is frozen)."""
     _check(config)
     net = dnd_params(params)
+    inputs = seen_inputs(inputs, config)
     init = initial_motion(params, model, inputs, config) if initial is None else initial
     dtype = init.q_cam.dtype
     mask = jnp.asarray(inputs.mask)

@@ -278,8 +278,13 @@ def move_motion(motion, R: Array, t: Array):
     """A :class:`jmocap.motion.Motion` (one clip, (T, ...)) moved rigidly, ``X -> R X + t``: the
     root's position and orientation (``q``, ``target_q``), its world-frame linear velocity and
     residual force (``qd[:, :3]``, ``tau[:, :3]``; the angular parts are in the root's own frame
-    and stay) and the contact forces. Hinges, probabilities and diagnostics are unchanged."""
+    and stay), the contact forces and an estimated camera track (each camera sees the moved
+    world as it saw the old one). Hinges, probabilities and diagnostics are unchanged."""
     qR = mat_to_quat(R)
+    track = motion.camera_track
+    if track is not None:  # E' = E [R t; 0 1]^-1: camera' X' = camera X
+        rot = track[..., :3, :3] @ R.T
+        track = track.at[..., :3, :3].set(rot).at[..., :3, 3].set(track[..., :3, 3] - rot @ t)
 
     def move_q(q):
         pos = q[:, 0:3] @ R.T + t
@@ -288,7 +293,7 @@ def move_motion(motion, R: Array, t: Array):
 
     return motion.replace(
         q=move_q(motion.q), target_q=move_q(motion.target_q), qd=motion.qd.at[:, 0:3].set(motion.qd[:, 0:3] @ R.T),
-        tau=motion.tau.at[:, 0:3].set(motion.tau[:, 0:3] @ R.T), grf=motion.grf @ R.T,
+        tau=motion.tau.at[:, 0:3].set(motion.tau[:, 0:3] @ R.T), grf=motion.grf @ R.T, camera_track=track,
     )
 
 
