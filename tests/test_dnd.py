@@ -182,6 +182,7 @@ def test_pct_gradient_reaches_the_contact_head_without_contact_labels(model, con
         assert contact_grad == 0.0
 
 
+@pytest.mark.slow
 def test_training_window_loss_is_finite_and_its_gradient_matches_finite_differences(model):
     """The training loss (jmocap.train_dnd.window_loss) on a made-up window: finite, and its
     gradient along a random direction of DyNet's parameters agrees with a central difference."""
