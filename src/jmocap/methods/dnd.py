@@ -2,7 +2,8 @@
 camera whose motion is unknown.
 
 TPNet's pose in the camera frame is the initial motion ``q_hat`` (the paper's kinematics
-backbone). Two temporal networks read the whole clip (non-causal, like the paper's 16-frame
+backbone), beside the contact estimator's probabilities (which DyNet's contact logits refine).
+Only the first frame's camera is read (:func:`seen_inputs`). Two temporal networks read the whole clip (non-causal, like the paper's 16-frame
 windows, wider here):
 
 * **DyNet** (Sec. 3.3.1) predicts per frame the camera's angular velocity ``omega`` and linear
@@ -25,8 +26,10 @@ Per frame (``iterations`` sub-steps of ``dt = 1 / (fps k)``), with the camera's 
 3. **trajectory forward dynamics** (eq. 10): the root's world velocity changes by
    ``(R^T (eta + sum b lambda)) / m + g`` (the whole body's mass ``m``, where the paper writes the
    root body's);
-4. **constrained update** (eq. 15): the velocities are projected, in the kinetic-energy metric,
-   onto soft constraints that the contact points in contact do not move in the world;
+4. **constrained update** (eq. 15): the velocities are projected (the pose's change weighted
+   ``pose_stiffness`` times its kinetic energy, the world root's by its own) onto soft
+   constraints that the contact points in contact do not move in the world and, jmocap's
+   addition, come back to the known floor (``floor_recovery``);
 5. integration (eqs. 11-14) of the pose, the root's world position and the camera's orientation.
 
 The world motion is the root's world position, its orientation turned by ``R^T`` and the
