@@ -266,6 +266,11 @@ def test_shipped_dnd_runs_in_the_batch_engine_and_reads_only_the_first_camera(tm
         out[name] = load_result(tmp_path / name / f"{c.name}.npz")
     q = out["moving"]["q"]
     assert np.isfinite(q).all() and np.isfinite(out["moving"]["grf"]).all()
+    # the result keeps the input track and the estimated one, which starts at the first camera
+    est = out["still"]["camera_track_estimated"]
+    assert out["still"]["camera_track"] is None and est.shape == (48, 4, 4)
+    np.testing.assert_allclose(est[0], clip.camera_track[0], atol=1e-4)
+    np.testing.assert_allclose(out["moving"]["camera_track"], clip.camera_track, atol=1e-12)
     np.testing.assert_allclose(q, out["still"]["q"], atol=1e-5)
     # the root starts where TPNet puts it in the first camera, at a standing height
     assert 0.5 < q[0, 2] < 1.5

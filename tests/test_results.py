@@ -42,6 +42,7 @@ def test_every_written_field_reads_back(tmp_path):
     res = {k: rng.normal(size=(T, *shapes[k])).astype(np.float32) for k in MOTION_FIELDS}
     res["certified"] = rng.random(T) > 0.1  # the optional per-frame QP certificates
     res["diagnostics"] = {"objective_final": 1.25, "iterations": 200.0}  # an optimiser's report
+    res["camera_track_estimated"] = track + 0.01  # a method's own estimate of the track (dnd)
     identity = {"config": json.dumps({"mu": 0.8}), "params_sha256": "ab" * 32, "model_sha256": "cd" * 32,
                 "version": "9.9"}
     arrays = result_arrays(clip, res, method="physcap", height_m=1.62, mass_kg=model.total_mass,
@@ -55,6 +56,7 @@ def test_every_written_field_reads_back(tmp_path):
         np.testing.assert_array_equal(r[k], res[k])
     np.testing.assert_array_equal(r["keypoints2d"], clip.keypoints)
     np.testing.assert_array_equal(r["camera_track"], track)
+    np.testing.assert_array_equal(r["camera_track_estimated"], track + 0.01)
     np.testing.assert_array_equal(r["extrinsics"], track[0])
     assert r["diagnostics"] == res["diagnostics"]
     assert r["format"] == RESULT_FORMAT and r["name"] == "walk/take1" and r["source"] == "in/walk.npz"

@@ -332,6 +332,7 @@ def _fields(res: ChunkResult) -> dict[str, np.ndarray]:
         keypoints3d=res.keypoints3d,
         **({} if m.certified is None else {"certified": m.certified}),
         **({} if m.diagnostics is None else {"diagnostics": m.diagnostics}),
+        **({} if m.camera_track is None else {"camera_track_estimated": m.camera_track}),
     )
 
 

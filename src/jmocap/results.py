@@ -30,6 +30,10 @@ intrinsics         float64    (4,)          fx, fy, cx, cy
 image_size         int64      (2,)          width, height
 extrinsics         float64    (4, 4)        world -> camera (a moving camera's first frame)
 camera_track       float64    (T, 4, 4)     optional: a moving camera's world -> camera per frame
+camera_track_      float64    (T, 4, 4)     optional: the world -> camera track a method
+estimated                                   estimated (``dnd``, whose input is the first
+                                            frame's camera only); ``jmocap render`` draws the
+                                            camera view through it where ``camera_track`` is absent
 extrinsics_source  str        ()            where ``extrinsics`` came from: ``input`` (clip or
                                             sidecar), ``estimated`` (the floor seen from the
                                             person, jmocap.methods.floor), ``default``
@@ -172,6 +176,8 @@ def result_arrays(
         "image_size": np.asarray(clip.image_size, np.int64),
         "extrinsics": np.asarray(extr, np.float64),
         **({"camera_track": np.asarray(clip.camera_track, np.float64)} if clip.camera_track is not None else {}),
+        **({"camera_track_estimated": np.asarray(result["camera_track_estimated"], np.float64)}
+           if result.get("camera_track_estimated") is not None else {}),
         "assumed": np.array(json.dumps(list(assumed))),
         "warnings": np.array(json.dumps(list(warnings))),
         "height_source": np.array(height_source if height_source is not None
@@ -252,12 +258,13 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
         ):
             raise FormatError(f"{path}: field 'diagnostics' is not a JSON object of numbers")
         out["diagnostics"] = diag
-    out["camera_track"] = None
-    if "camera_track" in data:
-        a = data["camera_track"]
-        if a.shape != (T, 4, 4) or a.dtype.kind not in "fiu":
-            raise FormatError(f"{path}: field 'camera_track' has shape {a.shape} ({a.dtype}), expected ({T}, 4, 4) numbers")
-        out["camera_track"] = a
+    for key in ("camera_track", "camera_track_estimated"):
+        out[key] = None
+        if key in data:
+            a = data[key]
+            if a.shape != (T, 4, 4) or a.dtype.kind not in "fiu":
+                raise FormatError(f"{path}: field {key!r} has shape {a.shape} ({a.dtype}), expected ({T}, 4, 4) numbers")
+            out[key] = a
     for key, shape in _STATIC.items():
         if key in data:
             a = data[key]

@@ -871,7 +871,8 @@ def result_camera(result: dict):
 
     fx, fy, cx, cy = (float(v) for v in result["intrinsics"])
     w, h = (float(v) for v in result["image_size"])
-    extrinsics = result.get("camera_track") if result.get("camera_track") is not None else result.get("extrinsics")
+    extrinsics = next((result[k] for k in ("camera_track", "camera_track_estimated", "extrinsics")
+                       if result.get(k) is not None), None)
     return Camera.from_intrinsics(fx, fy, cx, cy, w, h, extrinsics=extrinsics, dtype=np.float64)
 
 
