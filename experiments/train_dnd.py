@@ -1,7 +1,7 @@
 """Train D&D's networks (DyNet and the attentive PD controller; jmocap.train_dnd) on a
 moving-camera archive, resumably, within a 2-core CPU session.
 
-    .venv/bin/python experiments/train_dnd.py [--variant dnd] [--steps 1500] [--ship]
+    .venv/bin/python experiments/train_dnd.py [--variant dnd] [--steps 1200] [--ship]
 
 1. Generates the training archive if it is missing (deterministic, resumable):
    ``jmocap data synth --out data/train_moving --clips 600 --seed 48 --frames-per-clip 90:180
@@ -39,7 +39,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=48, help="archive seed (never 123)")
     ap.add_argument("--variant", default="dnd")
     ap.add_argument("--run", default=None, help="checkpoint, log and outputs (default runs/<variant>)")
-    ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--steps", type=int, default=1200)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--context", type=int, default=96, help="frames per training window (the networks read all)")
     ap.add_argument("--warmup", type=int, default=16, help="the dynamics start at this frame of a window")

@@ -55,7 +55,7 @@ class DnDTrainConfig:
     data: str = "data/train_moving"
     out: str = "runs/dnd"
     variant: str = "dnd"  # dnd or one of its ablations (dnd_meta_pd, dnd_discrete_contacts, ...)
-    steps: int = 1500
+    steps: int = 1200
     batch: int = 8
     context: int = 96  # frames the networks read per sample
     warmup: int = 16  # the dynamics start at this frame of the window
