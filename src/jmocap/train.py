@@ -136,6 +136,19 @@ class TrainConfig:
 # ---------------------------------------------------------------------------------------
 
 
+def load_training_clip(path, layout: str):
+    """A clip of a training archive: in ``layout``, with the ground truth training needs
+    (``gt_q``, ``gt_keypoints3d``, ``gt_contacts``); a clear error naming the file otherwise."""
+    from jmocap.data.clip import load_clip
+
+    c = load_clip(path)
+    if c.layout != layout:
+        raise ValueError(f"{path}: layout {c.layout!r}, training expects {layout!r}")
+    if c.gt_q is None or c.gt_keypoints3d is None or c.gt_contacts is None:
+        raise ValueError(f"{path}: training needs gt_q, gt_keypoints3d and gt_contacts")
+    return c
+
+
 @dataclass
 class TrainingSet:
     """Clips of an archive held as numpy arrays, plus one character per subject (exact height
@@ -148,7 +161,6 @@ class TrainingSet:
 
     @staticmethod
     def load(path: str | os.PathLike, config: TrainConfig) -> TrainingSet:
-        from jmocap.data.clip import load_clip
 
         paths = [path] if isinstance(path, str | os.PathLike) else list(path)
         files = sorted(f for p in paths for f in Path(p).glob("*.npz"))
@@ -161,11 +173,7 @@ class TrainingSet:
         models: list[Model] = []
         clips = []
         for f in files:
-            c = load_clip(f)
-            if c.layout != layout.name:
-                raise ValueError(f"{f}: layout {c.layout!r}, training expects {layout.name!r}")
-            if c.gt_q is None or c.gt_keypoints3d is None or c.gt_contacts is None:
-                raise ValueError(f"{f}: training needs gt_q, gt_keypoints3d and gt_contacts")
+            c = load_training_clip(f, layout.name)
             key = (c.height_m, c.mass_kg)
             if key not in buckets:
                 buckets[key] = len(models)

@@ -46,6 +46,7 @@ from jmocap.methods import dnd as D
 from jmocap.methods import stages as S
 from jmocap.model import Model, character
 from jmocap.physics.rotations import mat_to_quat, quat_to_mat
+from jmocap.train import load_training_clip
 
 LOSS_WEIGHTS = {"3d": 5.0, "2d": 1.0, "trans": 1.0, "con": 0.5, "reg": 0.1, "cam": 0.5, "impulse": 1.0}
 
@@ -93,7 +94,6 @@ class DnDData:
     truth, and one character per subject."""
 
     def __init__(self, path, config: DnDTrainConfig, params: dict, cfg: D.DnDConfig, progress: bool = False):
-        from jmocap.data.clip import load_clip
 
         files = sorted(Path(path).glob("*.npz"))
         if config.max_clips:
@@ -106,11 +106,7 @@ class DnDData:
         layout = get_layout(cfg.layout)
         prepare = jax.jit(lambda p, m, i, q, k: _prepare(p, m, i, q, k, cfg))
         for f in files:
-            c = load_clip(f)
-            if c.layout != layout.name:
-                raise ValueError(f"{f}: layout {c.layout!r}, training expects {layout.name!r}")
-            if c.gt_q is None or c.gt_keypoints3d is None or c.gt_contacts is None:
-                raise ValueError(f"{f}: training needs gt_q, gt_keypoints3d and gt_contacts")
+            c = load_training_clip(f, layout.name)
             T = len(c.keypoints)
             if T < config.context:
                 continue

@@ -29,9 +29,10 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
-from flax import struct
+from flax import serialization, struct
 
 
 def static(default: Any) -> Any:
@@ -47,6 +48,32 @@ def static_fields(config_type: type) -> tuple[str, ...]:
 def traced_fields(config_type: type) -> tuple[str, ...]:
     """Names of the traced (differentiable) fields of a config type."""
     return tuple(f.name for f in dataclasses.fields(config_type) if f.metadata.get("pytree_node", True))
+
+
+def load_float32_params(path) -> dict:
+    """Network variables from a msgpack file (float16 or float32) as float32 numpy arrays: the
+    networks a method ships apart from the default weights (:func:`jmocap.weights.load_params`,
+    which the methods layer may not import)."""
+    import jax
+    import numpy as np
+
+    raw = serialization.msgpack_restore(Path(path).read_bytes())
+    return jax.tree.map(lambda x: np.asarray(x, np.float32), raw)
+
+
+def whole_clip(reconstruct: Callable) -> dict[str, Any]:
+    """The chunking functions of a non-causal method (``trajopt``, ``dnd``), for
+    ``Method(..., **whole_clip(reconstruct))``: a whole clip is one chunk (the engine runs such
+    methods on whole clips padded to a bucket), no history, no carried state."""
+    import jax.numpy as jnp
+
+    def init_carry(model, config=None, dtype=jnp.float32):
+        return jnp.zeros((), dtype)
+
+    def reconstruct_chunk(params, model, inputs, carry, first, config, history: int):
+        return carry, reconstruct(params, model, inputs, config)
+
+    return dict(reconstruct_chunk=reconstruct_chunk, init_carry=init_carry, history=lambda config: 0, causal=False)
 
 
 @dataclass(frozen=True)

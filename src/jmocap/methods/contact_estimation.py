@@ -34,11 +34,11 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import serialization
 
 from jmocap.camera import Camera, project, unproject
 from jmocap.inputs import ClipInputs
 from jmocap.layouts import get_layout
+from jmocap.methods.base import load_float32_params
 from jmocap.nets import ContactMLP
 
 Array = jnp.ndarray
@@ -359,10 +359,8 @@ def velocity_contacts(keypoints: Array, image_size: Array, mask: Array, threshol
 
 
 def load_contact_params(path) -> dict:
-    """Contact-MLP variables from a msgpack file (float16 or float32), as float32 arrays.
-    (:func:`jmocap.weights.load_params`, which the methods layer may not import.)"""
-    raw = serialization.msgpack_restore(Path(path).read_bytes())
-    return jax.tree.map(lambda x: np.asarray(x, np.float32), raw)
+    """Contact-MLP variables from a msgpack file (float16 or float32), as float32 arrays."""
+    return load_float32_params(path)
 
 
 def contact_params(params) -> dict:

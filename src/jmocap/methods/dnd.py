@@ -56,14 +56,22 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import serialization, struct
+from flax import struct
 
 from jmocap import physics as P
 from jmocap.constants import GRAVITY, NUM_CONTACTS
 from jmocap.inputs import ClipInputs
 from jmocap.layouts import get_layout
 from jmocap.methods import stages as S
-from jmocap.methods.base import Method, Variant, register, register_variant, static
+from jmocap.methods.base import (
+    Method,
+    Variant,
+    load_float32_params,
+    register,
+    register_variant,
+    static,
+    whole_clip,
+)
 from jmocap.methods.kinematic import LEARNED_STAGE_FIELDS, KinematicConfig
 from jmocap.methods.kinematic import init_params as init_tpnet_params
 from jmocap.model import Model
@@ -173,8 +181,7 @@ def init_params(key: Array, model: Model, config: DnDConfig = DnDConfig()) -> di
 
 def load_dnd_params(path) -> dict:
     """D&D's network variables from a msgpack file (float16 or float32) as float32 arrays."""
-    raw = serialization.msgpack_restore(Path(path).read_bytes())
-    return jax.tree.map(lambda x: np.asarray(x, np.float32), raw)
+    return load_float32_params(path)
 
 
 @functools.cache
@@ -617,21 +624,6 @@ def reconstruct(params: dict, model: Model, inputs: ClipInputs, config: DnDConfi
                   camera_track=estimated_track(r.states))
 
 
-def history(config) -> int:
-    """Non-causal: a whole clip is one chunk (no history)."""
-    return 0
-
-
-def init_carry(model: Model, config=None, dtype=jnp.float32):
-    """No state is carried (whole clips)."""
-    return jnp.zeros((), dtype)
-
-
-def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry, first, config, history: int):
-    """The whole clip (the engine runs non-causal methods on whole clips padded to a bucket)."""
-    return carry, reconstruct(params, model, inputs, config)
-
-
 METHOD = register(
     Method(
         name="dnd",
@@ -640,11 +632,8 @@ METHOD = register(
         paper="003 (D&D, Li et al. 2022), Sec. 3.2-3.5, on 000's (Neural PhysCap) kinematic target",
         config_type=DnDConfig,
         reconstruct=reconstruct,
-        reconstruct_chunk=reconstruct_chunk,
-        init_carry=init_carry,
-        history=history,
         init_params=init_params,
-        causal=False,
+        **whole_clip(reconstruct),
         from_weights=LEARNED_STAGE_FIELDS,
         shipped_networks=("dnd",),
     )

@@ -71,7 +71,7 @@ from jmocap.constants import FRICTION_MU
 from jmocap.inputs import ClipInputs
 from jmocap.layouts import get_layout
 from jmocap.methods import stages as S
-from jmocap.methods.base import Method, Variant, register, register_variant, static
+from jmocap.methods.base import Method, Variant, register, register_variant, static, whole_clip
 from jmocap.methods.kinematic import LEARNED_STAGE_FIELDS, KinematicConfig
 from jmocap.methods.kinematic import init_params as init_tpnet_params
 from jmocap.model import Model
@@ -1086,21 +1086,6 @@ def reconstruct(params: dict, model: Model, inputs: ClipInputs,
                   diagnostics={**out.diagnostics, **report})
 
 
-def history(config) -> int:
-    """Non-causal: a whole clip is one chunk (no history)."""
-    return 0
-
-
-def init_carry(model: Model, config=None, dtype=jnp.float32):
-    """No state is carried (whole clips)."""
-    return jnp.zeros((), dtype)
-
-
-def reconstruct_chunk(params, model: Model, inputs: ClipInputs, carry, first, config, history: int):
-    """The whole clip (the engine runs non-causal methods on whole clips padded to a bucket)."""
-    return carry, reconstruct(params, model, inputs, config)
-
-
 METHOD = register(
     Method(
         name="trajopt",
@@ -1109,11 +1094,8 @@ METHOD = register(
         paper="001 (Rempe et al. 2020), Sec. 3.1-3.3, on 000's (Neural PhysCap) kinematic target",
         config_type=TrajOptConfig,
         reconstruct=reconstruct,
-        reconstruct_chunk=reconstruct_chunk,
-        init_carry=init_carry,
-        history=history,
         init_params=init_params,
-        causal=False,
+        **whole_clip(reconstruct),
         from_weights=LEARNED_STAGE_FIELDS,
     )
 )
