@@ -9,6 +9,8 @@
                           (:mod:`jmocap.methods.dnd`); variants ``dnd_residual_force``,
                           ``dnd_discrete_contacts``, ``dnd_meta_pd`` (Tab. 3's ablations, each
                           with its own trained weights) and ``dnd_known_track``
+``dnd_trajopt``           offline, unknown moving camera: D&D's camera track (or a still camera),
+                          then trajopt under it (:mod:`jmocap.methods.dnd_trajopt`)
 variants of ``physcap``   ``physionical`` (every stage on), ``fixed_gains``, ``no_grfnet``,
                           ``no_hard_constraint``, ``no_canonicalisation`` (the paper's ablations)
 ========================  ==================================================================
@@ -19,6 +21,7 @@ inputs, config)`` is the pure function of one clip. See :mod:`jmocap.methods.bas
 
 from jmocap.methods import kinematic, physcap, pip, trajopt  # noqa: F401, I001  (registers the methods)
 from jmocap.methods import dnd  # noqa: F401, E402  (registered after them: the listing's order)
+from jmocap.methods import dnd_trajopt  # noqa: F401, E402
 from jmocap.methods.base import (
     Method,
     Variant,
