@@ -27,6 +27,9 @@ FORBIDDEN = {
     "subject": ("methods", "pipeline", "batch", "results", "evaluate", "metrics", "train", "cli", "demo",
                 "weights", "nets", "viz", "export", "physics"),
     "results": ("methods", "pipeline", "batch", "evaluate", "train", "cli", "demo"),
+    # scenes (terrain): geometry under the data layer's clips and the metrics
+    "scene": ("methods", "pipeline", "batch", "results", "evaluate", "metrics", "train", "cli", "demo",
+              "weights", "nets", "viz", "export", "physics", "model"),
     "weights": ("pipeline", "batch", "evaluate", "train", "cli", "demo"),
     "batch": ("evaluate", "train", "cli", "demo"),
     "evaluate": ("batch", "train", "cli", "demo"),

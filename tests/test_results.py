@@ -34,7 +34,8 @@ def _clip(T=6, **kw):
 def test_every_written_field_reads_back(tmp_path):
     track = np.repeat(np.eye(4)[None], 6, 0)
     track[:, :3, 3] = [[0.02 * t, 0.0, 4.0] for t in range(6)]  # a camera sliding sideways (optional field)
-    clip = _clip(height_m=1.62, mass_kg=55.0, camera_track=track)
+    step = {"boxes": [{"center": [1.0, 0.0, 0.1], "half_size": [0.3, 0.4, 0.1], "yaw_deg": 20.0}]}
+    clip = _clip(height_m=1.62, mass_kg=55.0, camera_track=track, scene=step)  # terrain (optional)
     model = character(1.62, 55.0)
     T, rng = clip.num_frames, np.random.default_rng(1)
     shapes = {"q": (model.nq,), "qd": (model.nv,), "tau": (model.nv,), "grf": (4, 3), "contact_prob": (4,),
@@ -59,6 +60,8 @@ def test_every_written_field_reads_back(tmp_path):
     np.testing.assert_array_equal(r["camera_track_estimated"], track + 0.01)
     np.testing.assert_array_equal(r["extrinsics"], track[0])
     assert r["diagnostics"] == res["diagnostics"]
+    np.testing.assert_allclose(r["scene"].centers, clip.scene.centers)
+    np.testing.assert_allclose(r["scene"].rotations, clip.scene.rotations, atol=1e-15)
     assert r["format"] == RESULT_FORMAT and r["name"] == "walk/take1" and r["source"] == "in/walk.npz"
     assert r["method"] == "physcap" and r["forces_estimated"] is True and r["layout"] == "body25"
     assert (r["fps"], r["height_m"]) == (25.0, 1.62) and r["mass_kg"] == pytest.approx(55.0)

@@ -227,6 +227,7 @@ def _evaluate_clip(clip: Clip, pred: dict, gt: dict, length: int, pred_mass: flo
     out = M.evaluate_arrays(
         pred, gt, fps=clip.fps, mask=mask, camera=camera, root=clip.layout_spec.root_indices,
         pred_mass=pred_mass, gt_mass=clip.mass_kg or subject_model(clip).total_mass, pred_camera=pred_camera,
+        scene=clip.scene,
     )
     return {**out, **{f"diag_{k}": float(v) for k, v in diagnostics.items()}}
 

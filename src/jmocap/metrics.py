@@ -14,6 +14,8 @@ Conventions
   and compiles once per shape. Arrays have any leading batch dimensions, then frames: joints
   ``(..., T, J, 3)`` in metres in the z-up world (floor z = 0), foot points ``(..., T, P, 3)``,
   contact labels ``(..., T, P)``; per-clip scalars (fps, weights) are () or the batch shape.
+  The foot-floor metrics take an optional ``scene`` (:class:`jmocap.scene.Scene`): heights are
+  then signed distances to the floor and its boxes.
 * ``mask`` (``(..., T)`` bool, default all True) marks the real frames; a metric averages over
   real frames only. A finite difference is used only where every frame it reads is real.
 * A metric whose selection is empty (no real frame, no in-contact frame, no flight frame, ...)
@@ -632,6 +634,16 @@ def _feet(points, contacts=None):
     return points, c > 0.5
 
 
+def _height(points: Array, scene=None) -> Array:
+    """Height (..., P) of foot points above what they stand on: ``z`` over the floor, or their
+    signed distance to a :class:`jmocap.scene.Scene` (the floor and its boxes) when given."""
+    if scene is None:
+        return points[..., 2]
+    from jmocap.scene import sdf
+
+    return sdf(scene, points)
+
+
 @jax.jit
 def contact_labels(points: Array, max_step: float = CONTACT_MAX_STEP_M,
                    max_height: float = CONTACT_MAX_HEIGHT_M) -> Array:
@@ -646,43 +658,45 @@ def contact_labels(points: Array, max_step: float = CONTACT_MAX_STEP_M,
 
 
 @jax.jit
-def mean_penetration_error(points: Array, contacts: Array, mask=None) -> Array:
+def mean_penetration_error(points: Array, contacts: Array, mask=None, scene=None) -> Array:
     """Mean Penetration Error, MPE (mm), [000] Table 5: the mean distance ``|z|`` between foot
     point and floor over the points and real frames where the foot is in contact (``contacts``,
-    ground-truth labels)."""
+    ground-truth labels). With a ``scene`` (:mod:`jmocap.scene`) every foot metric measures
+    heights as the signed distance to the scene instead of ``z``."""
     points, c = _feet(points, contacts)
     w = c & _frame_mask(mask, points.shape[:-2])[..., None]
-    return _mean(jnp.abs(points[..., 2]) * 1000.0, w, 2)
+    return _mean(jnp.abs(_height(points, scene)) * 1000.0, w, 2)
 
 
 @jax.jit
-def non_penetration(points: Array, mask=None, *, tolerance: float = PNP_TOLERANCE_M) -> Array:
+def non_penetration(points: Array, mask=None, scene=None, *, tolerance: float = PNP_TOLERANCE_M) -> Array:
     """Percentage of Non-Penetration, PNP (%), [000] Table 5: the share of real frames in which
     no foot point is below the floor, ``z >= -tolerance`` for every point. The paper states no
     tolerance; jmocap's 1 mm keeps float noise and the sub-millimetre sinking of soft (MuJoCo)
     contacts from counting as penetration."""
     points, _ = _feet(points)
-    ok = jnp.all(points[..., 2] >= -tolerance, axis=-1)
+    ok = jnp.all(_height(points, scene) >= -tolerance, axis=-1)
     m = _frame_mask(mask, ok.shape)
     return 100.0 * _mean(ok.astype(points.dtype), m, 1)
 
 
 @jax.jit
-def foot_floating(points: Array, contacts: Array, mask=None, *, threshold: float = FLOAT_THRESHOLD_M) -> Array:
+def foot_floating(points: Array, contacts: Array, mask=None, scene=None, *,
+                  threshold: float = FLOAT_THRESHOLD_M) -> Array:
     """Floating (%), [001] Table 2: among the (point, frame) pairs in contact by the labels, the
     share more than ``threshold`` (3 cm) above the floor."""
     points, c = _feet(points, contacts)
     w = c & _frame_mask(mask, points.shape[:-2])[..., None]
-    return 100.0 * _mean((points[..., 2] > threshold).astype(points.dtype), w, 2)
+    return 100.0 * _mean((_height(points, scene) > threshold).astype(points.dtype), w, 2)
 
 
 @jax.jit
-def foot_penetration(points: Array, mask=None, *, threshold: float = PENETRATION_THRESHOLD_M) -> Array:
+def foot_penetration(points: Array, mask=None, scene=None, *, threshold: float = PENETRATION_THRESHOLD_M) -> Array:
     """Penetration (%), [001] Table 2: the share of all (point, frame) pairs more than
     ``threshold`` (3 cm) below the floor, at any time."""
     points, _ = _feet(points)
     w = jnp.broadcast_to(_frame_mask(mask, points.shape[:-2])[..., None], points.shape[:-1])
-    return 100.0 * _mean((points[..., 2] < -threshold).astype(points.dtype), w, 2)
+    return 100.0 * _mean((_height(points, scene) < -threshold).astype(points.dtype), w, 2)
 
 
 @jax.jit
@@ -1102,6 +1116,7 @@ def evaluate_arrays(
     pred_mass: float | None = None,
     gt_mass: float | None = None,
     pred_camera: Camera | None = None,
+    scene=None,
 ) -> dict[str, float]:
     """Every applicable metric of one clip as a flat ``{key: float}`` (keys: :data:`METRICS`).
 
@@ -1117,6 +1132,9 @@ def evaluate_arrays(
     (``*_cam_*``): the ground truth seen by it, the estimate by ``pred_camera``, the camera the
     estimate was made with where that differs (a method that took the first frame's camera for
     all, ignoring the camera's motion; default ``camera``).
+
+    A ``scene`` (:class:`jmocap.scene.Scene`, the clip's terrain) makes the foot metrics measure
+    heights against it (signed distance) instead of against the floor ``z = 0``.
 
     A metric whose inputs are missing is absent from the result, and so is one that is
     undefined for this clip (e.g. ballistic GRF without flight frames); no value is NaN. Inputs
@@ -1143,13 +1161,14 @@ def evaluate_arrays(
     p, g = _finite(pred, "pred", m), _finite(gt, "gt", m)
     values = _metric_values(p, g, m, np.float32(fps), camera, tuple(int(i) for i in root),
                             None if pred_mass is None else np.float32(pred_mass),
-                            None if gt_mass is None else np.float32(gt_mass), pred_camera)
+                            None if gt_mass is None else np.float32(gt_mass), pred_camera,
+                            None if scene is None else jax.tree.map(lambda a: np.asarray(a, np.float32), scene))
     values = {k: float(v) for k, v in jax.device_get(values).items()}
     return {k: values[k] for k in METRICS if k in values and np.isfinite(values[k])}
 
 
 @partial(jax.jit, static_argnames=("root",))
-def _metric_values(p, g, m, fps, camera, root, pred_mass, gt_mass, pred_camera=None) -> dict[str, Array]:
+def _metric_values(p, g, m, fps, camera, root, pred_mass, gt_mass, pred_camera=None, scene=None) -> dict[str, Array]:
     """The metrics of :func:`evaluate_arrays` as arrays (NaN where undefined); the set of keys
     follows the (static) set of inputs."""
     out: dict[str, Array] = {}
@@ -1188,11 +1207,11 @@ def _metric_values(p, g, m, fps, camera, root, pred_mass, gt_mass, pred_camera=N
 
     feet = p.get("feet")
     if feet is not None:
-        out["pnp_pct"] = non_penetration(feet, m)
-        out["penetrate_pct"] = foot_penetration(feet, m)
+        out["pnp_pct"] = non_penetration(feet, m, scene)
+        out["penetrate_pct"] = foot_penetration(feet, m, scene)
         if gt_contacts is not None:
-            out["mpe_mm"] = mean_penetration_error(feet, gt_contacts, m)
-            out["float_pct"] = foot_floating(feet, gt_contacts, m)
+            out["mpe_mm"] = mean_penetration_error(feet, gt_contacts, m, scene)
+            out["float_pct"] = foot_floating(feet, gt_contacts, m, scene)
             out["skate_pct"] = foot_skate(feet, gt_contacts, m)
 
     forces = p.get("grf")
@@ -1298,4 +1317,5 @@ def evaluate_motion(
         pred["keypoints3d"] = keypoints3d
     gt, gt_mass = clip_ground_truth(clip, gt_model)
     return evaluate_arrays(pred, gt, fps=clip.fps, mask=mask, camera=clip_camera(clip),
-                           root=clip.layout_spec.root_indices, pred_mass=pred_mass, gt_mass=gt_mass)
+                           root=clip.layout_spec.root_indices, pred_mass=pred_mass, gt_mass=gt_mass,
+                           scene=clip.scene)

@@ -34,6 +34,8 @@ camera_track_      float64    (T, 4, 4)     optional: the world -> camera track 
 estimated                                   estimated (``dnd``, whose input is the first
                                             frame's camera only); ``jmocap render`` draws the
                                             camera view through it where ``camera_track`` is absent
+scene              str        ()            optional: the input clip's terrain, a
+                                            ``jmocap-scene-1`` document (jmocap.scene)
 extrinsics_source  str        ()            where ``extrinsics`` came from: ``input`` (clip or
                                             sidecar), ``estimated`` (the floor seen from the
                                             person, jmocap.methods.floor), ``default``
@@ -100,6 +102,12 @@ _BOOLS = ("forces_estimated",)
 
 class ReconstructionError(ValueError):
     """A reconstruction that produced non-finite values (never written as a result)."""
+
+
+def _scene_document(scene) -> dict:
+    from jmocap.scene import scene_document
+
+    return scene_document(scene)
 
 
 def check_finite(result: dict[str, np.ndarray], where: str) -> None:
@@ -178,6 +186,7 @@ def result_arrays(
         **({"camera_track": np.asarray(clip.camera_track, np.float64)} if clip.camera_track is not None else {}),
         **({"camera_track_estimated": np.asarray(result["camera_track_estimated"], np.float64)}
            if result.get("camera_track_estimated") is not None else {}),
+        **({"scene": np.array(json.dumps(_scene_document(clip.scene)))} if clip.scene is not None else {}),
         "assumed": np.array(json.dumps(list(assumed))),
         "warnings": np.array(json.dumps(list(warnings))),
         "height_source": np.array(height_source if height_source is not None
@@ -258,6 +267,15 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
         ):
             raise FormatError(f"{path}: field 'diagnostics' is not a JSON object of numbers")
         out["diagnostics"] = diag
+    out["scene"] = None
+    if "scene" in data:
+        from jmocap.scene import SceneError, parse_scene
+
+        try:
+            out["scene"] = parse_scene(limits.parse_json(str(data["scene"]), f"{path}: field 'scene'"),
+                                       f"{path}: field 'scene'")
+        except SceneError as e:
+            raise FormatError(str(e)) from None
     for key in ("camera_track", "camera_track_estimated"):
         out[key] = None
         if key in data:

@@ -34,6 +34,9 @@ gt_cop                float32     (T, 2, 3)   optional; centre of pressure per f
 gt_free_moment        float32     (T, 2)      optional; vertical torque per foot about its CoP (N m)
 height_m              float64     ()          optional; subject height in metres
 mass_kg               float64     ()          optional; subject mass in kilograms
+scene                 str         ()          optional; the terrain beyond the floor z = 0, a
+                                              ``jmocap-scene-1`` JSON document (boxes:
+                                              :mod:`jmocap.scene`); absent: the floor alone
 meta                  str         ()          JSON object (motion kind, seed, generator, ...)
 ====================  ==========  ==========  ===============================================
 
@@ -114,6 +117,9 @@ class Clip:
     gt_free_moment: np.ndarray | None = None
     height_m: float | None = None
     mass_kg: float | None = None
+    # the terrain beyond the floor (jmocap.scene.Scene; a jmocap-scene-1 document, dict or JSON
+    # text, is parsed): foot metrics measure heights against it
+    scene: Any = None
     meta: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
@@ -369,6 +375,15 @@ def _validate(values: dict[str, Any], where: str) -> dict[str, Any]:
     except (TypeError, ValueError, RecursionError) as e:
         raise ClipFormatError(f"{where}: field 'meta' is not JSON-serialisable: {e}") from None
     out["meta"] = meta
+    scene = values.get("scene")
+    if scene is not None:
+        from jmocap.scene import Scene, SceneError, parse_scene, scene_document
+
+        try:
+            doc = scene_document(scene) if isinstance(scene, Scene) else scene
+            out["scene"] = parse_scene(doc, f"{where}: field 'scene'")
+        except SceneError as e:
+            raise ClipFormatError(str(e)) from None
 
     J = LAYOUTS[layout].num_joints
 
@@ -532,6 +547,10 @@ def clip_to_arrays(clip: Clip) -> dict[str, np.ndarray]:
         "fps": np.array(clip.fps, dtype=np.float64),
         "meta": np.array(json.dumps(clip.meta, sort_keys=True)),
     }
+    if clip.scene is not None:
+        from jmocap.scene import scene_document
+
+        arrays["scene"] = np.array(json.dumps(scene_document(clip.scene)))
     for key in _ARRAY_FIELDS:
         v = getattr(clip, key)
         if v is not None:
@@ -607,6 +626,14 @@ def clip_from_arrays(data, where: str) -> Clip:
                 f"{where}: field 'meta' must be a JSON object, got {type(meta).__name__}"
             )
         values["meta"] = meta
+    scene_s = _str_field(data, "scene", where, required=False)
+    if scene_s is not None:
+        try:
+            values["scene"] = limits.parse_json(scene_s, f"{where}: field 'scene'")
+        except limits.LimitError:
+            raise
+        except FormatError as e:
+            raise ClipFormatError(str(e)) from None
     try:
         return Clip(**values)
     except FormatError as e:  # ClipFormatError, or LimitError (too many frames)
