@@ -257,3 +257,18 @@ def test_the_overlay_of_a_moving_camera_draws_each_frame_from_its_own_pose(gl, m
     got = list(viz.overlay_frames(model, q, iter(blank), moving))
     np.testing.assert_array_equal(got[0], list(viz.overlay_frames(model, q, iter(blank), a))[0])
     np.testing.assert_array_equal(got[1], list(viz.overlay_frames(model, q, iter(blank), b))[1])
+
+
+def test_a_scenes_boxes_are_drawn(gl, model):
+    """A step beside the standing character (jmocap.scene): pixels around its projected top
+    centre change to the scene's blue-grey in the front view; without it they do not."""
+    from jmocap.scene import parse_scene
+
+    q = model.keyframe("stand")[None]
+    step = parse_scene({"boxes": [{"center": [0.0, 0.7, 0.15], "half_size": [0.25, 0.25, 0.15]}]})
+    plain = next(viz.render_frames(model, q, size=(320, 240), views=("front",)))
+    drawn = next(viz.render_frames(model, q, size=(320, 240), views=("front",), scene=step))
+    changed = np.abs(drawn.astype(int) - plain.astype(int)).sum(-1) > 60
+    assert changed.sum() > 200, f"the box drew (almost) nothing ({changed.sum()} px)"
+    r, g, b = (drawn[changed][:, i].astype(int) for i in range(3))
+    assert np.median(b - r) > 30, "changed pixels are not the (blue-grey) box"

@@ -69,6 +69,7 @@ __all__ = [
 DEFAULT_SIZE = (320, 240)  # per view (width, height)
 FORCE_SCALE_M_PER_BW = 0.5  # arrow length of a force of one body weight
 ARROW_RGBA = np.array([0.1, 0.85, 0.1, 1.0], np.float32)  # green: unlike skin, floor, red feet
+SCENE_RGBA = np.array([0.35, 0.45, 0.85, 1.0], np.float32)  # blue-grey: a scene's boxes (steps, ramps)
 CONTACT_RGBA = np.array([0.9, 0.05, 0.05, 1.0], np.float32)
 KEYPOINT_RGB = (0, 230, 255)
 BONE_RGB = (255, 255, 255)
@@ -405,6 +406,7 @@ def render_frames(
     force_scale: float = FORCE_SCALE_M_PER_BW,
     quality: str = "fast",
     fps: float | None = None,
+    scene=None,
 ) -> Iterator[np.ndarray]:
     """An iterator of RGB frames (H, W * number of views, 3) uint8, one per frame of ``q``.
 
@@ -437,6 +439,8 @@ def render_frames(
       quality: ``"fast"`` (default: no shadows, floor reflections or multisampling, about 5x
         faster with Mesa's software OpenGL) or ``"high"`` (the model's own visual settings).
       fps: only for the time label.
+      scene: a :class:`jmocap.scene.Scene` (the clip's terrain): its boxes are drawn in every
+        view (blue-grey).
     """
     where = "render"
     q = check_q(model, q, f"{where}: field 'q'")
@@ -497,6 +501,11 @@ def render_frames(
     arrow_w = 0.01 * float(mj.stat.extent)  # 20 mm for the humanoid (extent 2 m)
     # contact markers: the geoms of the body that carries each contact site (hindfoot, toes)
     contact_geoms = [np.nonzero(mj.geom_bodyid == mj.site_bodyid[s])[0] for s in sites]
+    boxes = [] if scene is None else [
+        (np.asarray(c, np.float64), np.asarray(h, np.float64), np.asarray(R, np.float64))
+        for c, h, R in zip(scene.centers, scene.half_sizes, scene.rotations, strict=True)
+        if float(np.asarray(c)[2]) > -1e3  # padding boxes (jmocap.scene.pad) are not drawn
+    ]
 
     def frames() -> Iterator[np.ndarray]:
         mjr = copy.copy(mj)  # render settings go on a copy of the user's model
@@ -531,6 +540,10 @@ def render_frames(
                             g = scene.geoms[i]
                             if g.objtype == mujoco.mjtObj.mjOBJ_GEOM and g.objid in tinted:
                                 g.rgba[:] = CONTACT_RGBA
+                    for c, h, R in boxes:  # the terrain (a scene's boxes, jmocap.scene)
+                        g = _add_geom(scene)
+                        if g is not None:
+                            mujoco.mjv_initGeom(g, mujoco.mjtGeom.mjGEOM_BOX, h, c, R.ravel(), SCENE_RGBA)
                     arrows = []
                     if grf is not None:
                         for start, force in _foot_forces(d.site_xpos[sites].astype(np.float64), grf[t]):
@@ -572,6 +585,7 @@ def render(
     size: tuple[int, int] = DEFAULT_SIZE,
     force_scale: float = FORCE_SCALE_M_PER_BW,
     quality: str = "fast",
+    scene=None,
 ) -> Path:
     """Render a motion to ``path``: MP4 (H.264, imageio-ffmpeg's ffmpeg) or GIF, by extension.
 
@@ -589,7 +603,7 @@ def render(
         raise ValueError(f"render({path}): fps must be positive, got {fps}")
     frames = render_frames(
         model, q, grf=grf, contacts=contacts, keypoints2d=keypoints2d, camera=camera, layout=layout,
-        views=views, size=size, force_scale=force_scale, quality=quality, fps=fps,
+        views=views, size=size, force_scale=force_scale, quality=quality, fps=fps, scene=scene,
     )
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
@@ -905,7 +919,7 @@ def render_result(
             out, model, r["q"], r["fps"], grf=r["grf"], contacts=r["contact_prob"],
             keypoints2d=r["keypoints2d"] if camera is not None else None, camera=camera,
             layout=r["layout"], views=("front", "side") if side else ("front",), size=size,
-            quality=quality,
+            quality=quality, scene=r.get("scene"),
         )
     ]
     if plots is not None:
