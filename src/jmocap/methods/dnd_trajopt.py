@@ -31,9 +31,10 @@ of every frame. This method composes the two, in one pure function of the clip:
    motion.
 
 The result's ``camera_track`` is the track the fit used (``camera_track_estimated`` in a result
-file); its diagnostics add ``camera_still`` (1: the still camera was chosen), both
-hypotheses' reprojection energies, the still fit's residual (``residual_still_bw``), the estimated track's ``camera_speed_m_s`` and
-``camera_turn_deg_s``, and trajopt's convergence report of the chosen fit.
+file); its diagnostics add ``camera_still`` (1: the still camera was chosen), both hypotheses'
+reprojection energies, the still fit's residual (``residual_still_bw``), the estimated track's
+``camera_speed_m_s`` and ``camera_turn_deg_s``, and trajopt's convergence report of the chosen
+fit.
 docs/method.md ("Offline D&D") and docs/evaluation.md give the measurements behind the choice.
 """
 
@@ -88,7 +89,8 @@ def reconstruct(params: dict, model: Model, inputs: ClipInputs,
                 config: DnDTrajOptConfig = DnDTrajOptConfig()) -> Motion:  # noqa: B008
     """2D keypoints of one clip (and its first frame's camera) -> a world :class:`Motion` fitted
     to them and to the equations of motion, under D&D's estimate of the camera track or, where
-    its fit reprojects better without a residual force, a still camera."""
+    its fit reprojects better and needs at most ``still_max_residual`` of residual root force, a
+    still camera."""
     if config.camera_choice not in CAMERA_CHOICES:
         raise ValueError(f"camera_choice must be one of {CAMERA_CHOICES}, got {config.camera_choice!r}")
     est = D.reconstruct(params, model, inputs, config).camera_track
@@ -120,7 +122,7 @@ METHOD = register(
     Method(
         name="dnd_trajopt",
         summary="offline, unknown moving camera: trajopt under D&D's estimate of the camera track, "
-        "or under a still camera where that fit reprojects better and needs no residual force",
+        "or under a still camera where that fit reprojects better and needs at most 5 % BW of residual",
         paper="003 (D&D, Li et al. 2022) for the camera, 001 (Rempe et al. 2020) for the fit",
         config_type=DnDTrajOptConfig,
         reconstruct=reconstruct,
