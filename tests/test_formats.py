@@ -738,3 +738,30 @@ def test_package_re_exports_every_public_name_of_its_modules():
         for name in mod.__all__:
             assert name in formats.__all__, f"{m}.{name} not in jmocap.data.formats.__all__"
             assert getattr(formats, name) is getattr(mod, name), f"{m}.{name}"
+
+
+def test_alphapose_halpe26_results(tmp_path):
+    """AlphaPose's output: a COCO results list with 26 keypoints (Halpe-26) and frame-file image
+    ids ("12.jpg"); read as a halpe26 clip with frames 0..2, and written back as it was read."""
+    from jmocap.layouts import get_layout
+
+    H = get_layout("halpe26")
+    rng = np.random.default_rng(3)
+    res = []
+    for t in (0, 2, 1):
+        kp = np.concatenate([rng.uniform(100, 900, (26, 2)), rng.uniform(0.3, 1.0, (26, 1))], -1)
+        res.append({"image_id": f"{t}.jpg", "category_id": 1, "keypoints": kp.reshape(-1).tolist(),
+                    "score": 2.5, "box": [1, 2, 3, 4], "idx": [0.0]})
+    path = tmp_path / "alphapose-results.json"
+    path.write_text(json.dumps(res))
+    k2d = read_coco_json(path)
+    assert k2d.layout == "halpe26" and k2d.keypoints.shape == (3, 26, 3)
+    np.testing.assert_array_equal(k2d.frame_ids, [0, 1, 2])
+    np.testing.assert_allclose(k2d.keypoints[2, H.index("LHeel")], res[1]["keypoints"][3 * 24:3 * 25], rtol=1e-6)
+    clip = read_clip(path, image_size=(1920, 1080), fps=30)
+    assert clip.layout == "halpe26" and clip.to_layout("body25").meta["layout_conversion"]["not_used"] == ["Head"]
+    back = read_coco_json(write_coco_results(clip, tmp_path / "again.json"))
+    np.testing.assert_allclose(back.keypoints, clip.keypoints, rtol=1e-6)
+    with pytest.raises(FormatError, match="image_id 'a.jpg' is not an integer"):
+        (tmp_path / "named.json").write_text(json.dumps([{**res[0], "image_id": "a.jpg"}]))
+        read_coco_json(tmp_path / "named.json")

@@ -55,8 +55,8 @@ def test_midpoint_sites_are_what_they_say(sites_at_poses):
             assert 1e-4 < err.max() < 0.12, (site, err.max())
 
 
-@pytest.mark.parametrize("src", ["coco17", "h36m17", "body25"])
-@pytest.mark.parametrize("dst", ["body25", "coco17", "h36m17"])
+@pytest.mark.parametrize("src", ["coco17", "h36m17", "body25", "halpe26"])
+@pytest.mark.parametrize("dst", ["body25", "coco17", "h36m17", "halpe26"])
 def test_conversion_copies_sites_and_marks_the_rest_missing(src, dst, sites_at_poses):
     conv = conversion(src, dst)
     S, D = get_layout(src), get_layout(dst)
@@ -108,6 +108,8 @@ def test_coco_to_body25_says_what_it_did():
     assert conv.dropped == ()
     h = conversion("h36m17", "body25")
     assert set(h.dropped) == {"Spine", "Thorax", "Head"}
+    a = conversion("halpe26", "body25")  # AlphaPose's: every BODY_25 joint, nothing derived
+    assert (a.absent, a.derived_joints, a.dropped) == ((), (), ("Head",))
     assert "absent: REye, LEye, REar, LEar" in h.describe()
     with pytest.raises(ValueError, match=r"\(\.\.\., 17, 3\) for layout 'coco17'"):
         conv.keypoints(np.zeros((3, 25, 3)))
@@ -127,7 +129,7 @@ def test_clip_to_layout(sites_at_poses):
 
 
 def test_every_layout_reconstructs_end_to_end(tmp_path, xla_cache):
-    """The demo walk as BODY_25, COCO-17 and Human3.6M-17 clips (the same detections, the
+    """The demo walk as BODY_25, COCO-17, Human3.6M-17 and Halpe-26 clips (the same detections, the
     joints each layout lacks removed) through ``jmocap reconstruct`` with the shipped BODY_25
     weights: every clip gets a result that records its conversion, and the joints are about as
     accurate as from BODY_25 (against the BODY_25 ground truth; the shipped weights measure
@@ -142,14 +144,14 @@ def test_every_layout_reconstructs_end_to_end(tmp_path, xla_cache):
     clip = load_clip(demo_assets() / "ground_truth" / "demo_walk.npz").slice(0, 60)
     inp = tmp_path / "in"
     inp.mkdir()
-    for layout in ("body25", "coco17", "h36m17"):
+    for layout in ("body25", "coco17", "h36m17", "halpe26"):
         save_clip(inp / f"walk_{layout}.npz", clip.to_layout(layout).replace(name=f"walk_{layout}"))
     out = tmp_path / "out"
     assert main(["reconstruct", str(inp), str(out), "--method", "kinematic", "--quiet",
                  "--cache-dir", str(xla_cache)]) == 0
     entries = {e["name"]: e for e in map(json.loads, (out / "manifest.jsonl").read_text().splitlines())}
     err = {}
-    for layout in ("body25", "coco17", "h36m17"):
+    for layout in ("body25", "coco17", "h36m17", "halpe26"):
         e = entries[f"walk_{layout}"]
         assert e["status"] == "ok", e
         assert (e.get("layout_conversion") or {}).get("from") == (None if layout == "body25" else layout)
@@ -159,3 +161,4 @@ def test_every_layout_reconstructs_end_to_end(tmp_path, xla_cache):
         rel = (kp - kp[:, 8:9]) - (clip.gt_keypoints3d - clip.gt_keypoints3d[:, 8:9])
         err[layout] = float(np.linalg.norm(rel, axis=-1).mean())
     assert err["coco17"] < 1.15 * err["body25"] and err["h36m17"] < 1.15 * err["body25"], err
+    assert abs(err["halpe26"] - err["body25"]) < 1e-6, err  # Halpe-26 has every BODY_25 joint

@@ -126,7 +126,7 @@ def _data(p: argparse.ArgumentParser) -> None:
                         "control (mujoco.rollout), no root force ever, about 8x slower (docs/data.md)")
     s.add_argument("--frames-per-clip", type=_frames_arg, default=(150, 300), metavar="N|MIN:MAX",
                    help="clip length in frames (default 150:300)")
-    s.add_argument("--layout", default="body25", choices=["body25", "coco17", "h36m17"],
+    s.add_argument("--layout", default="body25", choices=["body25", "coco17", "h36m17", "halpe26"],
                    help="2D keypoint layout (default body25)")
     s.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
     s.add_argument("--kinds", type=_kinds_arg, default=None, metavar="K1,K2",

@@ -151,7 +151,44 @@ H36M17 = _layout(
     root_fallback=("RHip", "LHip"),
 )
 
-LAYOUTS: dict[str, Layout] = {layout.name: layout for layout in (BODY25, COCO17, H36M17)}
+# AlphaPose's Halpe-26 (Fang et al. 2022, "AlphaPose: whole-body regional multi-person pose
+# estimation and tracking"): COCO-17's joints, then head top, neck, mid-hip and the feet as
+# BODY_25 has them (big toes, small toes, heels), every one a site of the character
+HALPE26 = _layout(
+    "halpe26",
+    (
+        ("Nose", "kp_nose"),
+        ("LEye", "kp_left_eye"),
+        ("REye", "kp_right_eye"),
+        ("LEar", "kp_left_ear"),
+        ("REar", "kp_right_ear"),
+        ("LShoulder", "kp_left_shoulder"),
+        ("RShoulder", "kp_right_shoulder"),
+        ("LElbow", "kp_left_elbow"),
+        ("RElbow", "kp_right_elbow"),
+        ("LWrist", "kp_left_wrist"),
+        ("RWrist", "kp_right_wrist"),
+        ("LHip", "kp_left_hip"),
+        ("RHip", "kp_right_hip"),
+        ("LKnee", "kp_left_knee"),
+        ("RKnee", "kp_right_knee"),
+        ("LAnkle", "kp_left_ankle"),
+        ("RAnkle", "kp_right_ankle"),
+        ("Head", "kp_head_top"),
+        ("Neck", "kp_neck"),
+        ("Hip", "kp_mid_hip"),
+        ("LBigToe", "kp_left_big_toe"),
+        ("RBigToe", "kp_right_big_toe"),
+        ("LSmallToe", "kp_left_small_toe"),
+        ("RSmallToe", "kp_right_small_toe"),
+        ("LHeel", "kp_left_heel"),
+        ("RHeel", "kp_right_heel"),
+    ),
+    root=("Hip",),
+    root_fallback=("RHip", "LHip"),
+)
+
+LAYOUTS: dict[str, Layout] = {layout.name: layout for layout in (BODY25, COCO17, H36M17, HALPE26)}
 
 # The four foot contact points (named once in jmocap.constants), re-exported here.
 CONTACT_SITES = _CONTACT_SITES

@@ -28,11 +28,28 @@ from jmocap.data.formats.keypoints import Keypoints2D
 from jmocap.data.formats.person import Candidate, select_person
 from jmocap.layouts import get_layout
 
+#: the number of keypoint values per entry -> the layout a results list is in, when not given
+LAYOUT_OF_LENGTH = {51: "coco17", 78: "halpe26"}
+
+
+def _numbered_frame(image_id) -> int | None:
+    """The frame number of an image id that is a numbered frame file, as AlphaPose writes them
+    for a video (``"12.jpg"``), else None."""
+    if isinstance(image_id, str):
+        stem, dot, ext = image_id.rpartition(".")
+        if dot and stem.isdigit() and ext.isalpha() and len(stem) <= 9:
+            return int(stem)
+    return None
+
 
 def _frame_index(image_ids, frame_of, path):
     """Frame numbers of the entries' image ids: the ids themselves (integers, not booleans or
-    strings) or ``frame_of[id]`` / ``frame_of(id)``; FormatError naming the bad id."""
+    strings), numbered frame files (``"12.jpg"``: frame 12, AlphaPose's ids for a video's
+    frames) or ``frame_of[id]`` / ``frame_of(id)``; FormatError naming the bad id."""
     if frame_of is None:
+        numbered = [_numbered_frame(i) for i in image_ids]
+        if image_ids and all(n is not None for n in numbered):
+            return numbered
         bad = [i for i in image_ids if not isinstance(i, int) or isinstance(i, bool)]
         if bad:
             raise _ferr(
@@ -51,6 +68,16 @@ def _frame_index(image_ids, frame_of, path):
             ) from None
         out.append(int(f))
     return out
+
+
+def _layout_of(data) -> str:
+    """The layout of a results list or annotation file from its first entry's keypoints
+    (:data:`LAYOUT_OF_LENGTH`; COCO-17 otherwise, whose reader then names what is wrong)."""
+    entries = data.get("annotations") if isinstance(data, dict) else data
+    if not isinstance(entries, list):
+        return "coco17"
+    first = next((e for e in entries if isinstance(e, dict) and isinstance(e.get("keypoints"), list)), None)
+    return "coco17" if first is None else LAYOUT_OF_LENGTH.get(len(first["keypoints"]), "coco17")
 
 
 def _annotation_images(images, path):
@@ -109,14 +136,19 @@ def read_coco_json(
     frame_of: Mapping | Callable | None = None,
     person: str = "track",
     name: str | None = None,
-    layout: str = "coco17",
+    layout: str | None = None,
 ) -> Keypoints2D:
-    """Read COCO-17 keypoints: a results list or an annotation file.
+    """Read COCO keypoints: a results list or an annotation file.
 
     * Results (what ``COCO.loadRes`` / COCO keypoint evaluation read): a JSON list of
       ``{"image_id": int, "category_id": 1, "keypoints": [x, y, v] * 17, "score": float}``;
       ``v`` is the keypoint confidence. Several entries per image are several people
-      (:func:`select_person`, score = ``score``).
+      (:func:`select_person`, score = ``score``). AlphaPose writes the same list with 26
+      keypoints (Halpe-26, ``halpe26``) and image ids that are frame files (``"12.jpg"``).
+
+    ``layout`` (``coco17``, ``halpe26``, or any layout of jmocap with that many joints): by
+    default the one whose joint count the first entry's keypoints have (78 values: Halpe-26;
+    otherwise COCO-17, whose 51 values are then checked on every entry).
     * Annotations (``person_keypoints_*.json``): a dict with ``images`` and ``annotations``;
       ``v`` is the visibility flag (0 not labelled, 1 labelled but occluded, 2 visible): v > 0
       gives confidence 1. The frame order is the ``images`` order unless ``frame_of`` is given.
@@ -133,6 +165,8 @@ def read_coco_json(
     """
     path = Path(path)
     data = _load_json(path)
+    if layout is None:
+        layout = _layout_of(data)
     J = get_layout(layout).num_joints
     image_size = None
     if isinstance(data, dict) and "annotations" in data:
@@ -201,14 +235,15 @@ def read_coco_json(
 def write_coco_results(
     clip: Clip | Keypoints2D, path: str | os.PathLike, *, first_image_id: int = 0
 ) -> Path:
-    """Write a coco17 clip as a COCO keypoint results list (image_id = first_image_id + frame).
+    """Write a coco17 (or halpe26, AlphaPose's) clip as a COCO keypoint results list
+    (image_id = first_image_id + frame).
 
-    ``keypoints`` is ``[x, y, confidence] * 17`` (missing joints 0, 0, 0) and ``score`` the mean
+    ``keypoints`` is ``[x, y, confidence] * J`` (missing joints 0, 0, 0) and ``score`` the mean
     confidence of the visible joints; frames with no visible joint are left out, as a detector
     with no detection would.
     """
-    if clip.layout != "coco17":
-        raise ValueError(f"COCO results need a coco17 clip, got layout {clip.layout!r}")
+    if clip.layout not in LAYOUT_OF_LENGTH.values():
+        raise ValueError(f"COCO results need a coco17 or halpe26 clip, got layout {clip.layout!r}")
     out = []
     for t, kp in enumerate(np.asarray(clip.keypoints, np.float32)):
         vis = kp[:, 2] > 0
