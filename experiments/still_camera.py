@@ -1,5 +1,6 @@
-"""How still D&D's estimated camera is on still and moving cameras: the statistics behind
-``dnd_trajopt``'s still-camera test (``still_speed``, ``still_turn``).
+"""How still D&D's estimated camera is on still and moving cameras: whether a threshold on its
+speed and turning rate could tell them apart (it cannot: docs/method.md, "Offline D&D", which is
+why ``dnd_trajopt`` compares two fits instead, ``experiments/choose_camera.py``).
 
     .venv/bin/python experiments/still_camera.py --archive data/val_moving [--archive data/train_moving --max-clips 80]
 
