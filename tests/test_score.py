@@ -227,3 +227,17 @@ def test_force_plates_and_contacts_score_the_forces_and_feet(tmp_path):
                  | {"forces_estimated": np.array(False)})
     s = score_result(load_result(tmp_path / "kin.npz"), gt)
     assert "grf_err_pct_bw" not in s and "skate_pct" in s
+    # a result whose input has a terrain: a platform 30 cm above the floor under the whole walk
+    # (reaching below the floor, so depths inside it are to its top: the motion's feet, at the
+    # floor, are 30 cm inside it), and a box far away (which changes nothing)
+    base = score_result(load_result(tmp_path / "r.npz"), gt)
+    for box, sunk in (({"center": [0.0, 0.0, -0.1], "half_size": [50.0, 50.0, 0.4]}, True),
+                      ({"center": [80.0, 0.0, 0.5], "half_size": [1.0, 1.0, 0.5]}, False)):
+        scene = np.array(json.dumps({"format": "jmocap-scene-1", "boxes": [box]}))
+        write_result(tmp_path / "scene.npz", dict(arrays, scene=scene))
+        s = score_result(load_result(tmp_path / "scene.npz"), gt)
+        if sunk:
+            assert s["pnp_pct"] == 0.0 and s["penetrate_pct"] > 95.0 and s["float_pct"] == 0.0
+        else:
+            assert {k: s[k] for k in ("pnp_pct", "penetrate_pct", "float_pct")} == \
+                {k: base[k] for k in ("pnp_pct", "penetrate_pct", "float_pct")}

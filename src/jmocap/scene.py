@@ -9,6 +9,10 @@ would be approximated by boxes.
   ``grad``): negative inside the floor or a box. It is the interaction term's distance (MoCon eq.
   4) and the height that foot metrics measure against (penetration and floating relative to the
   scene, not to ``z = 0``). Tested against MuJoCo's own geometry distance (``mj_geomDistance``).
+  The union is the minimum of the parts' distances: exact outside and in sign, but inside two
+  overlapping solids it is the distance to the nearer of their surfaces, which may be hidden
+  inside the other (a box's bottom face on the floor): model a box that stands on the floor as
+  reaching below it, so that depths inside it are measured to its exposed faces.
 * :func:`add_to_spec` puts the boxes into a MuJoCo model (:class:`mujoco.MjSpec`) beside the
   character, as static world geoms with the floor's friction, so that a simulation collides
   with them.

@@ -152,7 +152,9 @@ def load_ground_truth(path: str | os.PathLike) -> dict[str, Any]:
 def score_result(result: dict[str, Any], gt: dict[str, Any], *, where: str = "result") -> dict[str, float]:
     """Scores (:data:`SCORES`) of a result (:func:`jmocap.results.load_result`) against a
     ground truth (:func:`load_ground_truth`), on the frames both have and the joints the
-    ground truth has."""
+    ground truth has. Foot heights are measured against the input's terrain where the result
+    carries one (``scene``, :mod:`jmocap.scene`), else against the floor."""
+    import jax
     import jax.numpy as jnp
 
     from jmocap import metrics as M
@@ -200,12 +202,15 @@ def score_result(result: dict[str, Any], gt: dict[str, Any], *, where: str = "re
 
         model = result_model(result)
         feet = site_trajectory(model.mj, result["q"], model.topo.contact_sites)
-        out["pnp_pct"] = M.non_penetration(jnp.asarray(feet, f32))
-        out["penetrate_pct"] = M.foot_penetration(jnp.asarray(feet, f32))
+        # heights against the input's terrain where the result carries one (jmocap.scene)
+        scene = None if result.get("scene") is None else jax.tree.map(lambda x: np.asarray(x, np.float32),
+                                                                      result["scene"])
+        out["pnp_pct"] = M.non_penetration(jnp.asarray(feet, f32), None, scene)
+        out["penetrate_pct"] = M.foot_penetration(jnp.asarray(feet, f32), None, scene)
         if gt.get("contacts") is not None:
             c = jnp.asarray(gt["contacts"][a - off:b - off], f32)
             out["skate_pct"] = M.foot_skate(jnp.asarray(feet[a:b], f32), c)
-            out["float_pct"] = M.foot_floating(jnp.asarray(feet[a:b], f32), c)
+            out["float_pct"] = M.foot_floating(jnp.asarray(feet[a:b], f32), c, None, scene)
     forces = bool(result.get("forces_estimated", True)) and result.get("grf") is not None
     if gt.get("foot_grf") is not None and forces:
         from jmocap.constants import GRAVITY
