@@ -145,15 +145,16 @@ def read_coco_json(
       ``v`` is the keypoint confidence. Several entries per image are several people
       (:func:`select_person`, score = ``score``). AlphaPose writes the same list with 26
       keypoints (Halpe-26, ``halpe26``) and image ids that are frame files (``"12.jpg"``).
-
-    ``layout`` (``coco17``, ``halpe26``, or any layout of jmocap with that many joints): by
-    default the one whose joint count the first entry's keypoints have (78 values: Halpe-26;
-    otherwise COCO-17, whose 51 values are then checked on every entry).
     * Annotations (``person_keypoints_*.json``): a dict with ``images`` and ``annotations``;
       ``v`` is the visibility flag (0 not labelled, 1 labelled but occluded, 2 visible): v > 0
       gives confidence 1. The frame order is the ``images`` order unless ``frame_of`` is given.
 
-    Frames: by default the image id *is* the frame number (ids are integers, the clip spans the
+    ``layout`` (``coco17``, ``halpe26``, or any layout of jmocap with that many joints): by
+    default the one whose joint count the first entry's keypoints have (78 values: Halpe-26;
+    otherwise COCO-17, whose 51 values are then checked on every entry).
+
+    Frames: by default the image id *is* the frame number (ids are integers, or numbered frame
+    files such as ``"12.jpg"``; the clip spans the
     smallest to the largest id present, gaps become missing frames); ``frame_of`` (a mapping or
     a function image_id -> frame number) overrides this. ``category_id`` other than 1 (person)
     is skipped. No fps, image size or camera is stored (COCO image entries' ``width``/``height``
