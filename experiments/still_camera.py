@@ -22,7 +22,7 @@ import numpy as np
 from jmocap.data.archive import Archive
 from jmocap.inputs import ClipInputs
 from jmocap.methods import dnd_trajopt as DT
-from jmocap.methods.dnd import estimated_track, rollout
+from jmocap.methods.dnd import estimate_track
 from jmocap.model import load_model
 from jmocap.weights import load_run_params
 
@@ -38,7 +38,7 @@ def main() -> None:
 
     @jax.jit
     def stats(inputs):
-        est = estimated_track(rollout(params, model, inputs, config).states)
+        est = estimate_track(params, model, inputs, config)
         mask = jnp.asarray(inputs.mask)
         return DT.track_motion_stats(est, mask, inputs.fps), DT.track_motion_stats(
             jnp.asarray(inputs.world_to_camera()), mask, inputs.fps)

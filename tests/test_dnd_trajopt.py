@@ -59,7 +59,6 @@ def test_the_better_reprojecting_camera_is_chosen_and_it_is_the_true_one(monkeyp
     from jmocap.methods import dnd as D
     from jmocap.methods import trajopt as TO
     from jmocap.model import load_model
-    from jmocap.motion import Motion
     from jmocap.weights import load_run_params
 
     model = load_model(with_mjx=False)
@@ -74,8 +73,7 @@ def test_the_better_reprojecting_camera_is_chosen_and_it_is_the_true_one(monkeyp
     for name, clip, estimate, chosen in cases:
         inputs = ClipInputs.from_clip(clip)
         fake = jnp.asarray(estimate, jnp.float32)
-        monkeypatch.setattr(D, "reconstruct", lambda p, m, i, c, fake=fake: Motion(
-            *(jnp.zeros(1),) * 7, camera_track=fake))
+        monkeypatch.setattr(D, "estimate_track", lambda p, m, i, c, fake=fake: fake)
         out = jax.jit(lambda i: DT.reconstruct(params, model, i, config))(inputs)
         d = {k: float(v) for k, v in out.diagnostics.items()}
         assert d["camera_still"] == chosen, (name, d["reproj_estimated"], d["reproj_still"], d["residual_still_bw"])

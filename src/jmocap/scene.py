@@ -115,6 +115,16 @@ def pad(scene: Scene, n: int) -> Scene:
     return Scene(centers, halves, rots)
 
 
+def boxes(scene: Scene) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``(center, half_size, rotation)`` (numpy float64) of every box of a scene that is not
+    padding (:func:`pad`)."""
+    return [
+        (np.asarray(c, np.float64), np.asarray(h, np.float64), np.asarray(R, np.float64))
+        for c, h, R in zip(scene.centers, scene.half_sizes, scene.rotations, strict=True)
+        if float(np.asarray(c)[2]) > -EMPTY_DEPTH_M / 2
+    ]
+
+
 def parse_scene(obj: Any, where: str = "scene") -> Scene:
     """A validated :class:`Scene` from a ``jmocap-scene-1`` document (a dict, or JSON text)."""
     if isinstance(obj, str):
@@ -186,9 +196,7 @@ def _vector(box: Mapping, key: str, at: str, shape: tuple) -> np.ndarray:
 def scene_document(scene: Scene) -> dict:
     """The ``jmocap-scene-1`` document of a scene (rotations written in full)."""
     return {"format": FORMAT, "boxes": [
-        {"center": np.asarray(c).tolist(), "half_size": np.asarray(h).tolist(), "rotation": np.asarray(R).tolist()}
-        for c, h, R in zip(scene.centers, scene.half_sizes, scene.rotations, strict=True)
-        if float(np.asarray(c)[2]) > -EMPTY_DEPTH_M / 2  # padding is not written
+        {"center": c.tolist(), "half_size": h.tolist(), "rotation": R.tolist()} for c, h, R in boxes(scene)
     ]}
 
 
@@ -200,16 +208,14 @@ def add_to_spec(spec, scene: Scene, friction: float | None = None, prefix: str =
 
     floor = next((g for g in spec.worldbody.geoms if g.type == mujoco.mjtGeom.mjGEOM_PLANE), None)
     names = []
-    for i, (c, h, R) in enumerate(zip(scene.centers, scene.half_sizes, scene.rotations, strict=True)):
-        if float(np.asarray(c)[2]) <= -EMPTY_DEPTH_M / 2:
-            continue
+    for i, (c, h, R) in enumerate(boxes(scene)):
         quat = np.zeros(4)
-        mujoco.mju_mat2Quat(quat, np.asarray(R, np.float64).ravel())
+        mujoco.mju_mat2Quat(quat, R.ravel())
         g = spec.worldbody.add_geom()
         g.name = f"{prefix}{i}"
         g.type = mujoco.mjtGeom.mjGEOM_BOX
-        g.size = np.asarray(h, np.float64)
-        g.pos = np.asarray(c, np.float64)
+        g.size = h
+        g.pos = c
         g.quat = quat
         g.contype, g.conaffinity = 1, 1
         if friction is not None:
@@ -220,5 +226,5 @@ def add_to_spec(spec, scene: Scene, friction: float | None = None, prefix: str =
     return names
 
 
-__all__ = ["EMPTY_DEPTH_M", "FORMAT", "MAX_BOXES", "Scene", "SceneError", "add_to_spec", "box_sdf", "pad",
+__all__ = ["EMPTY_DEPTH_M", "FORMAT", "MAX_BOXES", "Scene", "SceneError", "add_to_spec", "box_sdf", "boxes", "pad",
            "parse_scene", "rotation_from_angles", "scene_document", "sdf"]

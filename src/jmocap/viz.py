@@ -501,11 +501,9 @@ def render_frames(
     arrow_w = 0.01 * float(mj.stat.extent)  # 20 mm for the humanoid (extent 2 m)
     # contact markers: the geoms of the body that carries each contact site (hindfoot, toes)
     contact_geoms = [np.nonzero(mj.geom_bodyid == mj.site_bodyid[s])[0] for s in sites]
-    boxes = [] if scene is None else [
-        (np.asarray(c, np.float64), np.asarray(h, np.float64), np.asarray(R, np.float64))
-        for c, h, R in zip(scene.centers, scene.half_sizes, scene.rotations, strict=True)
-        if float(np.asarray(c)[2]) > -1e3  # padding boxes (jmocap.scene.pad) are not drawn
-    ]
+    from jmocap.scene import boxes as scene_boxes
+
+    boxes = [] if scene is None else scene_boxes(scene)  # the terrain, padding left out
 
     def frames() -> Iterator[np.ndarray]:
         mjr = copy.copy(mj)  # render settings go on a copy of the user's model

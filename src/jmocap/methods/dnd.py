@@ -584,6 +584,12 @@ def estimated_track(states: State) -> Array:
     return E.at[:, 3, 3].set(1.0)
 
 
+def estimate_track(params: dict, model: Model, inputs: ClipInputs, config: DnDConfig = DnDConfig()) -> Array:  # noqa: B008
+    """(T, 4, 4) the camera track D&D estimates for a clip (:func:`estimated_track` of its
+    rollout), without the world motion's outputs (forces, inverse dynamics)."""
+    return estimated_track(rollout(params, model, inputs, config).states)
+
+
 def world_forces(states: State, grf: Array, b: Array) -> Array:
     """(T, 4, 3) the contact forces ``b lambda`` in the world's axes."""
     return jnp.einsum("tji,tcj->tci", states.R, b[..., None] * grf)
@@ -663,6 +669,7 @@ __all__ = [
     "contact_sample",
     "default_dnd_params",
     "dnd_params",
+    "estimate_track",
     "estimated_track",
     "init_params",
     "initial_motion",

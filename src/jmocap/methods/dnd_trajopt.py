@@ -93,7 +93,7 @@ def reconstruct(params: dict, model: Model, inputs: ClipInputs,
     still camera."""
     if config.camera_choice not in CAMERA_CHOICES:
         raise ValueError(f"camera_choice must be one of {CAMERA_CHOICES}, got {config.camera_choice!r}")
-    est = D.reconstruct(params, model, inputs, config).camera_track
+    est = D.estimate_track(params, model, inputs, config)
     mask = jnp.asarray(inputs.mask)
     speed, turn = track_motion_stats(est, mask, inputs.fps)
 
