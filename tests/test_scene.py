@@ -68,6 +68,31 @@ def test_sdf_matches_mujocos_geometry_distance():
     assert (got < 0).sum() > 50 and (got > 0).sum() > 300  # both sides were tested
 
 
+def test_surface_height_matches_mujocos_ray_cast():
+    """The terrain height under points (the generator's and the labels' height) equals where a
+    vertical ray cast down by MuJoCo (``mj_ray`` from 10 m up) first meets the scene, on the
+    step, the ramp, the pillar, beside them and on the bare floor; padding changes nothing."""
+    scene = SC.parse_scene(DOC)
+    rng = np.random.default_rng(1)
+    xy = rng.uniform([-2.5, -2.2], [2.0, 1.2], size=(400, 2))
+    spec = mujoco.MjSpec()
+    floor = spec.worldbody.add_geom()
+    floor.type = mujoco.mjtGeom.mjGEOM_PLANE
+    floor.size = [0, 0, 1]
+    SC.add_to_spec(spec, scene)
+    m = spec.compile()
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    geomid = np.zeros(1, np.int32)
+    ref = np.array([10.0 - mujoco.mj_ray(m, d, np.array([x, y, 10.0]), np.array([0.0, 0.0, -1.0]), None, 1, -1, geomid)
+                    for x, y in xy])
+    got = SC.surface_height(scene, xy)
+    np.testing.assert_allclose(got, ref, atol=1e-9)
+    np.testing.assert_array_equal(SC.surface_height(SC.pad(scene, 6), xy), got)
+    assert (got > 0.01).sum() > 40 and (got == 0).sum() > 100  # boxes and floor both hit
+    assert np.unique(np.round(got[got > 0.01], 3)).size > 10  # the ramp's slope, not only flat tops
+
+
 def test_sdf_gradient_is_the_unit_normal():
     """Off the surfaces the distance's gradient has length one (eikonal) and points along the
     step from the point to MuJoCo's nearest surface point (finite differences agree)."""

@@ -13,7 +13,9 @@ nonlinear function of q, which leaves an O(dt) discretisation error); friction c
 values average the substeps of +-1 frame, during which a rocking foot moves).
 
 Every clip test runs on both controllers of the generator: the QP tracker with its rescue
-residual and the sampling controller without any root force.
+residual and the sampling controller without any root force; and on a terrain clip (a walk down
+a flight of stairs, boxes in the simulation: heights are then above the terrain under each
+point, ``jmocap.scene.height_above``, and each CoP lies on the surface under its foot).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from jmocap.data.synthetic.physics import (
     tent_weights,
 )
 from jmocap.physics.qp import friction_pyramid_rows
+from jmocap.scene import boxes, height_above
 
 FRAMES = 75
 
@@ -48,10 +51,17 @@ def _upright(quat):
     return np.array(out)
 
 
-@pytest.fixture(scope="module", params=[("walk", "qp"), ("run", "qp"), ("walk", "sampling"), ("run", "sampling")],
+@pytest.fixture(scope="module", params=[("walk", "qp"), ("run", "qp"), ("walk", "sampling"), ("run", "sampling"),
+                                        ("terrain", "qp")],
                 ids=lambda p: "-".join(p))
 def clip(request):
     kind, controller = request.param
+    if kind == "terrain":
+        c = S.generate_clip(5, 1, S.SynthConfig(frames=150, physics=True, terrain=("stairs_down",)))
+        assert c.scene is not None and len(boxes(c.scene)) >= 2
+        # no foot scuffed a step's edge: every force is on a horizontal surface (friction test)
+        assert c.meta["physics"]["edge_contact_frames"] == 0
+        return c
     return S.generate_clip(1, 0, S.SynthConfig(frames=FRAMES, kinds=(kind,), physics=True,
                                                physics_cfg=PhysicsConfig(controller=controller)))
 
@@ -149,15 +159,16 @@ def test_floor_split_gives_raised_sites_nothing():
 
 
 def _site_heights(clip):
-    """Heights (T, 4) of the contact sites at the frames, by MuJoCo C kinematics of ``gt_q``."""
+    """Heights (T, 4) of the contact sites at the frames above the terrain under them (above the
+    floor without a scene), by MuJoCo C kinematics of ``gt_q``."""
     ch = S.character(round(clip.height_m, 2))
     d = mujoco.MjData(ch.mj)
     out = []
     for x in np.asarray(clip.gt_q, np.float64):
         d.qpos[:] = x
         mujoco.mj_kinematics(ch.mj, d)
-        out.append(d.site_xpos[list(ch.contact_sites), 2].copy())
-    return np.array(out)
+        out.append(d.site_xpos[list(ch.contact_sites)].copy())
+    return height_above(clip.scene, np.array(out))
 
 
 def test_force_floor_contact_labels(clip):
@@ -202,7 +213,11 @@ def test_per_foot_force_cop_free_moment(clip):
     thr = clip.meta["contact_rule"]["min_vertical_force_bw"] * _weight(clip)
     np.testing.assert_allclose(clip.gt_foot_force, clip.gt_grf.reshape(-1, 2, 2, 3).sum(2), atol=1e-2)
     assert np.all(np.isfinite(clip.gt_free_moment)) and np.all(np.isfinite(clip.gt_cop))
-    np.testing.assert_array_equal(clip.gt_cop[..., 2], 0.0)
+    # the CoP lies on a surface: the floor, or the top of the box under the foot
+    levels = [0.0] + [float(c[2] + h[2]) for c, h, _ in (boxes(clip.scene) if clip.scene is not None else [])]
+    assert np.all(np.min(np.abs(clip.gt_cop[..., 2, None] - np.array(levels, np.float32)), -1) < 1e-6)
+    if clip.scene is not None:  # and some CoP is on a step
+        assert np.any(clip.gt_cop[..., 2][clip.gt_foot_force[..., 2] > thr] > 0.05)
     # CoP inside the foot's sole (the foot boxes' corners, MuJoCo C kinematics) when loaded
     # (in stance: on this and both neighbouring frames, so the substeps averaged are in stance)
     d = mujoco.MjData(ch.mj)

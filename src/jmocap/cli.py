@@ -102,6 +102,16 @@ def _camera_kinds_arg(text: str):
     return kinds
 
 
+def _terrain_kinds_arg(text: str):
+    from jmocap.data.synthetic.terrain import TERRAIN_KINDS
+
+    kinds = tuple(k.strip() for k in text.split(",") if k.strip())
+    bad = [k for k in kinds if k not in TERRAIN_KINDS + ("flat",)]
+    if bad or not kinds:
+        raise argparse.ArgumentTypeError(f"unknown terrain kind(s) {bad}; known: {', '.join(TERRAIN_KINDS)}, flat")
+    return kinds
+
+
 @command("data", "synthetic data and clip archives")
 def _data(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="data_command", metavar="<data command>", required=True)
@@ -139,6 +149,11 @@ def _data(p: argparse.ArgumentParser) -> None:
                    default=(), metavar="K1,K2",
                    help="film each clip with a moving camera drawn from K1,K2 (default: handheld, pan, dolly, "
                         "orbit; 'static' may be one of them) and store its per-frame track (camera_track)")
+    s.add_argument("--terrain", type=_terrain_kinds_arg, nargs="?",
+                   const=("step_up", "step_down", "stairs_up", "stairs_down", "block"), default=(), metavar="K1,K2",
+                   help="walk on terrain drawn from K1,K2 (default: step_up, step_down, stairs_up, stairs_down, "
+                        "block; 'flat' may be one of them): boxes placed under the footsteps, simulated with "
+                        "--physics, stored as each clip's scene (docs/data.md)")
     s.add_argument("--no-corruption", action="store_true",
                    help="exact 2D projections, confidence 1 (with --imu: exact IMU signals)")
     s.add_argument("--imu", action="store_true",
@@ -184,11 +199,15 @@ def cmd_data_synth(args) -> int:
     if args.imu and args.moving_camera:
         print("jmocap data synth: --moving-camera is for 2D keypoint clips, not --imu", file=sys.stderr)
         return 2
+    if args.terrain and (args.imu or args.controller != "qp"):
+        print("jmocap data synth: --terrain makes 2D keypoint clips simulated (with --physics) by the QP "
+              "tracker: not with --imu or --controller sampling", file=sys.stderr)
+        return 2
     from jmocap.data.synthetic.physics import PhysicsConfig
 
     fields = dict(frames=args.frames_per_clip, fps=args.fps, layout=args.layout, physics=args.physics,
                   kinds=args.kinds, physics_cfg=PhysicsConfig(controller=args.controller),
-                  moving_camera=args.moving_camera)
+                  moving_camera=args.moving_camera, terrain=args.terrain)
     config = SynthConfig.extended_generator(**fields) if args.extended else SynthConfig(**fields)
     if args.no_corruption:
         config = dataclasses.replace(config, corruption=Corruption.none())

@@ -103,6 +103,40 @@ def sdf(scene: Scene, points: Array) -> Array:
     return jnp.minimum(d, jnp.min(boxes, -1))
 
 
+def surface_height(scene: Scene, xy: np.ndarray) -> np.ndarray:
+    """Height (...,) of the scene's highest surface above each point ``xy`` (..., 2) (numpy): the
+    top of the floor or of the highest box that a vertical line through the point meets (the
+    slab test in each box's frame; exact for pitched and rolled boxes too). A point's height
+    above the terrain under it is ``z - surface_height(scene, p[..., :2])``."""
+    xy = np.asarray(xy, np.float64)
+    top = np.zeros(xy.shape[:-1])
+    for c, h, R in boxes(scene):
+        # the line (x, y, z) in box coordinates: o + z d, with d = R^T e_z
+        o = np.einsum("ji,...j->...i", R, np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], -1) - c)
+        d = R[2]
+        lo = np.full(xy.shape[:-1], -np.inf)
+        hi = np.full(xy.shape[:-1], np.inf)
+        for k in range(3):
+            if abs(d[k]) < 1e-12:
+                out = np.abs(o[..., k]) > h[k]
+                lo = np.where(out, np.inf, lo)
+                continue
+            a, b = (-h[k] - o[..., k]) / d[k], (h[k] - o[..., k]) / d[k]
+            lo = np.maximum(lo, np.minimum(a, b))
+            hi = np.minimum(hi, np.maximum(a, b))
+        top = np.where(lo <= hi, np.maximum(top, hi), top)
+    return top
+
+
+def height_above(scene: Scene | None, points: np.ndarray) -> np.ndarray:
+    """Height (...,) of points (..., 3) above the terrain under them (numpy; above ``z = 0``
+    when ``scene`` is None): ``z - surface_height``."""
+    points = np.asarray(points, np.float64)
+    if scene is None:
+        return points[..., 2]
+    return points[..., 2] - surface_height(scene, points[..., :2])
+
+
 def pad(scene: Scene, n: int) -> Scene:
     """The scene with empty boxes appended up to ``n`` boxes (numpy; for batching)."""
     k = scene.num_boxes
@@ -227,4 +261,5 @@ def add_to_spec(spec, scene: Scene, friction: float | None = None, prefix: str =
 
 
 __all__ = ["EMPTY_DEPTH_M", "FORMAT", "MAX_BOXES", "Scene", "SceneError", "add_to_spec", "box_sdf", "boxes", "pad",
-           "parse_scene", "rotation_from_angles", "scene_document", "sdf"]
+           "parse_scene", "rotation_from_angles", "scene_document", "sdf",
+           "surface_height", "height_above"]

@@ -64,6 +64,7 @@ class Character:
 
     def __init__(self, model):
         self.model = model
+        self.spec_args = None  # (height, mass) of jmocap.model.scaled_spec, set by character()
         mj = self.mj = model.mj
         self.d = mujoco.MjData(mj)
         self.nq, self.nv = mj.nq, mj.nv
@@ -346,6 +347,7 @@ def character(height_m: float) -> Character:
     if ch is None:
         mass = 22.0 * h * h  # BMI 22
         ch = Character(scaled_character(h, mass))
+        ch.spec_args = (h, mass)  # jmocap.model.scaled_spec's arguments (the terrain's simulation model)
         if len(_CHAR_CACHE) > 64:
             _CHAR_CACHE.pop(next(iter(_CHAR_CACHE)))
         _CHAR_CACHE[h] = ch

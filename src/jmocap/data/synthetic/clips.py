@@ -43,7 +43,9 @@ from jmocap.data.synthetic.repertoire import (
     generate_motion,
 )
 from jmocap.data.synthetic.sampling import simulate_sampling
+from jmocap.data.synthetic.terrain import TERRAIN_KINDS, TERRAIN_WALK_KINDS
 from jmocap.layouts import CONTACT_SITES, get_layout
+from jmocap.scene import height_above
 
 GENERATOR = "jmocap.data.synthetic/1"
 
@@ -70,11 +72,20 @@ class SynthConfig:
     # cameras to draw from for each clip: "static" and MOVING_KINDS (handheld, pan, dolly,
     # orbit); () is a static camera (sample_camera) without the extra draw
     moving_camera: tuple[str, ...] = ()
+    # terrain kinds to draw from for each clip (terrain.TERRAIN_KINDS, and "flat" for the floor
+    # alone); () is the flat floor without the extra draw. Terrain clips walk (``kinds``
+    # defaults to walking) and carry their scene (Clip.scene)
+    terrain: tuple[str, ...] = ()
 
     def __post_init__(self):
         bad = [k for k in self.moving_camera if k not in MOVING_KINDS + ("static",)]
         if bad:
             raise ValueError(f"unknown camera kind(s) {bad}: one of {', '.join(MOVING_KINDS + ('static',))}")
+        bad = [k for k in self.terrain if k not in TERRAIN_KINDS + ("flat",)]
+        if bad:
+            raise ValueError(f"unknown terrain kind(s) {bad}: one of {', '.join(TERRAIN_KINDS + ('flat',))}")
+        if self.terrain and self.physics and self.physics_cfg.controller != "qp":
+            raise ValueError("terrain clips are simulated with the QP tracker only (physics_cfg.controller='qp')")
 
     @classmethod
     def extended_generator(cls, **changes) -> SynthConfig:
@@ -105,13 +116,16 @@ def _stance_runs(planted: np.ndarray) -> dict:
 
 
 def simulate(ch, q_ref: np.ndarray, fps: float, cfg: PhysicsConfig = PhysicsConfig(),  # noqa: B008
-             lead: int = 0, rng: np.random.Generator | None = None) -> dict:
+             lead: int = 0, rng: np.random.Generator | None = None, scene=None) -> dict:
     """The physics variant's simulation with ``cfg.controller``:
     :func:`~jmocap.data.synthetic.physics.simulate_tracking` ("qp", the QP tracker with its rescue
-    residual) or :func:`~jmocap.data.synthetic.sampling.simulate_sampling` ("sampling", no root
-    force, drawing from ``rng``)."""
+    residual; on the terrain ``scene`` when given) or
+    :func:`~jmocap.data.synthetic.sampling.simulate_sampling` ("sampling", no root force, drawing
+    from ``rng``; flat floor only)."""
     if cfg.controller == "qp":
-        return simulate_tracking(ch, q_ref, fps, cfg, lead)
+        return simulate_tracking(ch, q_ref, fps, cfg, lead, scene=scene)
+    if scene is not None:
+        raise ValueError("the sampling controller simulates the flat floor only")
     if cfg.controller == "sampling":
         return simulate_sampling(ch, q_ref, fps, cfg, lead, rng)
     raise ValueError(f"unknown physics controller {cfg.controller!r} (qp, sampling)")
@@ -146,7 +160,8 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
     """:func:`generate_clip` and the :class:`~jmocap.data.synthetic.character.Character` whose
     model its ground truth ``gt_q`` is a motion of (the synthetic IMUs are computed on it)."""
     layout = get_layout(config.layout)
-    kinds = tuple(config.kinds) if config.kinds else (EXTENDED_KINDS if config.extended else CLASSIC_KINDS)
+    kinds = tuple(config.kinds) if config.kinds else (
+        TERRAIN_WALK_KINDS if config.terrain else EXTENDED_KINDS if config.extended else CLASSIC_KINDS)
     for k in kinds:
         if k not in SEGMENTS:
             raise ValueError(f"unknown motion kind {k!r}; known: {sorted(SEGMENTS)}")
@@ -158,9 +173,10 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
         if T < 2:
             raise ValueError(f"frames per clip must be >= 2, got {T}")
         height = round(float(rng.uniform(*config.height_m)), 2)
+        terrain = config.terrain[int(rng.integers(len(config.terrain)))] if config.terrain else "flat"
         try:
             motion = generate_motion(height, rng, T / config.fps + 0.5, config.fps, kinds,
-                                     extended=config.extended)
+                                     extended=config.extended, terrain=None if terrain == "flat" else terrain)
             check_motion(motion)
             if motion.num_frames < T:
                 raise GenerationError("motion shorter than the clip")
@@ -174,15 +190,16 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
             if config.physics:
                 q_lead = _lead_in(planned, start, config.physics_cfg.settle_frames(config.fps))
                 sim = simulate(ch, np.concatenate([q_lead, q]), config.fps, config.physics_cfg,
-                               lead=len(q_lead), rng=np.random.default_rng([int(seed), int(index), attempt, 1]))
+                               lead=len(q_lead), rng=np.random.default_rng([int(seed), int(index), attempt, 1]),
+                               scene=motion.scene)
                 q, qd = sim["q"], sim["qd"]
                 meta["physics"] = sim["stats"]
             else:
                 qd = velocities(ch.mj, q, config.fps)
-            kp3d, contacts = _ground_truth(ch, q, layout, config.fps)
+            kp3d, contacts = _ground_truth(ch, q, layout, config.fps, motion.scene)
             if config.physics:
                 contacts = sim["contacts"]  # force and floor (docs/data.md)
-                heights = site_trajectories(ch, q, ch.check_sites)[..., 2]
+                heights = height_above(motion.scene, site_trajectories(ch, q, ch.check_sites))
                 meta["physics"]["min_site_height"] = float(heights.min())
             cam_kind = (config.moving_camera[int(rng.integers(len(config.moving_camera)))]
                         if config.moving_camera else "static")
@@ -211,6 +228,7 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
             kind_per_frame=[[MOTION_KINDS[int(motion.kind[a])], int(a), int(b)]
                             for a, b in _kind_runs(motion.kind)],
             physics_variant=bool(config.physics),
+            terrain=terrain,
             planned_contacts=_stance_runs(motion.planted),
             flight_frames=int(motion.flight.sum()),
             camera=_jsonable(cam_info),
@@ -242,6 +260,7 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
             gt_free_moment=sim.get("free_moment"),
             height_m=round(ch.height, 6),
             mass_kg=round(ch.mass, 6),
+            scene=motion.scene,
             meta=meta,
         ), ch
     raise GenerationError(f"clip {index} (seed {seed}): no valid motion in {config.max_attempts} "

@@ -12,6 +12,7 @@ import mujoco
 import numpy as np
 
 from jmocap.data.synthetic.character import Character, site_trajectories
+from jmocap.scene import height_above
 
 # Rempe et al. (2020), Sec. 3.2: a heel/toe point is in contact when it moved less than 2 cm
 # since the previous frame and is less than 5 cm above the floor.
@@ -34,21 +35,22 @@ def velocities(mj: mujoco.MjModel, q: np.ndarray, fps: float) -> np.ndarray:
 
 
 def contact_labels(points: np.ndarray, max_step: float = CONTACT_MAX_STEP_M,
-                   max_height: float = CONTACT_MAX_HEIGHT_M) -> np.ndarray:
+                   max_height: float = CONTACT_MAX_HEIGHT_M, scene=None) -> np.ndarray:
     """Rempe et al.'s rule: a point (T, 4, 3) is in contact at frame t when it moved less than
-    ``max_step`` since frame t-1 and is less than ``max_height`` above the floor. Frame 0 has
+    ``max_step`` since frame t-1 and is less than ``max_height`` above the floor (above the
+    terrain under it, :func:`jmocap.scene.height_above`, when a ``scene`` is given). Frame 0 has
     no previous frame and uses its displacement to frame 1 (the same one frame 1 uses)."""
     T = len(points)
     step = np.zeros(points.shape[:2])
     if T > 1:
         step[1:] = np.linalg.norm(np.diff(points, axis=0), axis=-1)
         step[0] = step[1]
-    return ((step < max_step) & (points[..., 2] < max_height)).astype(np.float32)
+    return ((step < max_step) & (height_above(scene, points) < max_height)).astype(np.float32)
 
 
-def _ground_truth(ch: Character, q: np.ndarray, layout, fps: float):
+def _ground_truth(ch: Character, q: np.ndarray, layout, fps: float, scene=None):
     sites = np.array([ch.mj.site(s).id for s in layout.sites] + list(ch.contact_sites))
     pos = site_trajectories(ch, q, sites)
     kp3d = pos[:, : layout.num_joints]
-    contacts = contact_labels(pos[:, layout.num_joints:])
+    contacts = contact_labels(pos[:, layout.num_joints:], scene=scene)
     return kp3d, contacts

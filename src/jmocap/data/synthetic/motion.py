@@ -41,6 +41,7 @@ from jmocap.data.synthetic.rotations import (
     _rz,
     _slerp_R,
 )
+from jmocap.scene import Scene, height_above
 
 
 @dataclass
@@ -56,6 +57,7 @@ class Motion:
     com: np.ndarray  # (T, 3) whole-body centre of mass
     zmp_ref: np.ndarray  # (T, 2) planned zero-moment point (NaN in flight)
     info: dict = field(default_factory=dict)
+    scene: Scene | None = None  # the terrain (:mod:`~.terrain`); None: the flat floor
 
     @property
     def num_frames(self) -> int:
@@ -89,22 +91,27 @@ def _seg_eval(plan: Plan, t: float, key: str) -> float:
     raise GenerationError(f"no segment covers t = {t}")
 
 
-def _z_profile(plan: Plan, t: np.ndarray, z_des: np.ndarray, flights) -> np.ndarray:
-    """Pelvis height: the segments' desired height, a g-parabola in every flight, and C1
-    corrections of the support phases next to a flight."""
+def _z_profile(plan: Plan, t: np.ndarray, z_des: np.ndarray, flights, ground: np.ndarray) -> np.ndarray:
+    """Pelvis height: the segments' desired height (``z_des``, raised by the terrain height
+    under the support ``ground`` (T,)), a g-parabola in every flight, and C1 corrections of the
+    support phases next to a flight."""
     z = z_des.copy()
     eps = 1e-4
+
+    def zf(tq):
+        return _seg_eval(plan, tq, "z") + float(np.interp(tq, t, ground))
+
     bc = []  # (time, dv, side) velocity mismatches to fix at support-interval ends
     for a, b in flights:
-        z0, z1 = _seg_eval(plan, a, "z"), _seg_eval(plan, b, "z")
+        z0, z1 = zf(a), zf(b)
         Tf = b - a
         v0 = (z1 - z0) / Tf + GRAVITY * Tf / 2
         v1 = v0 - GRAVITY * Tf
         m = (t > a) & (t < b)
         u = t[m] - a
         z[m] = z0 + v0 * u - 0.5 * GRAVITY * u * u
-        d_before = (_seg_eval(plan, a, "z") - _seg_eval(plan, a - eps, "z")) / eps
-        d_after = (_seg_eval(plan, b + eps, "z") - _seg_eval(plan, b, "z")) / eps
+        d_before = (zf(a) - zf(a - eps)) / eps
+        d_after = (zf(b + eps) - zf(b)) / eps
         bc.append((a, v0 - d_before, "end"))
         bc.append((b, v1 - d_after, "start"))
     # support intervals
@@ -153,15 +160,16 @@ def _load_share(plan: Plan, t, st_idx):
     return lam, loaded
 
 
-def _com_filter(p_ref, support, z_com, intent, fps, c_start, c_end):
+def _com_filter(p_ref, support, z_com, intent, fps, c_start, c_end, ground):
     """Horizontal COM trajectory (T, 2): its zero-moment point follows ``p_ref`` on support
-    frames (linear inverted pendulum with the given COM height), ``c'' = 0`` in flight, least
-    squares with small jerk and intent terms, at rest at both ends."""
+    frames (linear inverted pendulum with the given COM height above the support's surface,
+    ``z_com - ground``), ``c'' = 0`` in flight, least squares with small jerk and intent terms,
+    at rest at both ends."""
     N = len(p_ref)
     dt = 1.0 / fps
     zdd = np.zeros(N)
     zdd[1:-1] = (z_com[:-2] - 2 * z_com[1:-1] + z_com[2:]) / dt**2
-    beta = z_com / np.maximum(zdd + GRAVITY, 0.5)
+    beta = (z_com - ground) / np.maximum(zdd + GRAVITY, 0.5)
     rows, cols, vals = [], [], []
     rhs = []
     r = 0
@@ -221,6 +229,7 @@ def _foot_targets(plan: Plan, t, st_idx, fb, lift):
                 continue
             ph = phi_of(f, s, t[m])
             R, p, toe = ch.stance_pose(f, s.G, ph)
+            p[..., 2] += s.h
             R_t[f, m], p_t[f, m], toe_t[f, m] = R, p, toe
             planted[m, 2 * f] = ph <= 0
             planted[m, 2 * f + 1] = ph >= 0
@@ -241,16 +250,47 @@ def _foot_targets(plan: Plan, t, st_idx, fb, lift):
                 continue
             R0, p0, k0 = ch.stance_pose(f, a.G, phi_of(f, a, np.array(a.t_off)))
             R1, p1, k1 = ch.stance_pose(f, b.G, phi_of(f, b, np.array(b.t_on)))
+            p0[2] += a.h
+            p1[2] += b.h
             s = (t[m] - a.t_off) / (b.t_on - a.t_off)
             h = _smoothstep(s)
             p = p0 + h[:, None] * (p1 - p0)
+            p[:, 2] += _step_profile(s, b.h - a.h) - h * (b.h - a.h)
             p[:, 2] += a.swing.get("clear", 0.05) * _bump(s)
             R = _slerp_R(np.broadcast_to(R0, (len(s), 3, 3)), np.broadcast_to(R1, (len(s), 3, 3)), h)
             toe = k0 + _smoothstep(s / 0.5) * (k1 - k0)
-            minz = ch.foot_points(f, R, p, toe)[..., 2].min(axis=-1)
+            minz = height_above(plan.swing_scene, ch.foot_points(f, R, p, toe)).min(axis=-1)
             p[:, 2] += np.maximum(0.0, 0.002 * _bump(s) - minz) + lift[f, m]
             R_t[f, m], p_t[f, m], toe_t[f, m] = R, p, toe
     return R_t, p_t, toe_t, planted, P_zmp, rel
+
+
+def _step_profile(s: np.ndarray, dh: float) -> np.ndarray:
+    """A swing's change of surface height ``dh`` over its phase ``s`` in [0, 1]: up early (done
+    by 60 % of the swing, before the foot is over the higher surface's edge), down late (from
+    40 %)."""
+    if dh > 0:
+        return dh * _smoothstep(np.clip(s / 0.6, 0.0, 1.0))
+    if dh < 0:
+        return dh * _smoothstep(np.clip((s - 0.4) / 0.6, 0.0, 1.0))
+    return np.zeros_like(s)
+
+
+def _support_height(plan: Plan, t, st_idx, lam, fps) -> np.ndarray:
+    """The terrain height under the support (T,): the stance heights weighted by the load share,
+    interpolated through flights and smoothed over 0.15 s (the pelvis rises with the weight
+    transfer onto a higher step, not at the footfall). Zero on the flat floor."""
+    N = len(t)
+    if plan.scene is None:
+        return np.zeros(N)
+    hs = np.zeros((2, N))
+    for f in (0, 1):
+        for j, s in enumerate(plan.stances[f]):
+            hs[f, st_idx[f] == j] = s.h
+    g = np.where(np.isnan(lam), np.nan, np.nan_to_num(lam) * hs[0] + (1 - np.nan_to_num(lam)) * hs[1])
+    ok = ~np.isnan(g)
+    g = np.interp(t, t[ok], g[ok])
+    return gaussian_filter1d(g, sigma=0.15 * fps, mode="nearest")
 
 
 def _realize(plan: Plan, fps: float, n_pass: int = 8) -> Motion:
@@ -292,9 +332,10 @@ def _realize(plan: Plan, fps: float, n_pass: int = 8) -> Motion:
             st_idx[f, (t >= s.t_on - 1e-9) & (t <= s.t_off + 1e-9)] = j
     flights = _flights(plan, T_end)
     flight = (st_idx[0] < 0) & (st_idx[1] < 0)
-    z0 = _z_profile(plan, t, z_des, flights)
     lam, loaded = _load_share(plan, t, st_idx)
     support = ~np.isnan(lam)
+    ground = _support_height(plan, t, st_idx, lam, fps)
+    z0 = _z_profile(plan, t, z_des + ground, flights, ground)
 
     q = np.tile(ch.q_stand, (N, 1))
     q[:, upper_qadr] = upper
@@ -330,7 +371,7 @@ def _realize(plan: Plan, fps: float, n_pass: int = 8) -> Motion:
                 intent[:, i] = np.interp(t, t[ok], intent[ok, i])
             intent = gaussian_filter1d(intent, sigma=0.25 * fps, axis=0, mode="nearest")
         z_com = z0 + off[:, 2]
-        c = _com_filter(p_ref, support, z_com, intent, fps, intent[0], intent[-1])
+        c = _com_filter(p_ref, support, z_com, intent, fps, intent[0], intent[-1], ground)
         pel = np.column_stack([c - off[:, :2], z0])
         _rel_swings(plan, ch, t, pel, yaw, rel, st_idx, R_t, p_t, toe_t, lift)
         dz = _reach_fix(ch, pel, R_pel, p_t, world, flights, t, fps)
@@ -352,7 +393,7 @@ def _realize(plan: Plan, fps: float, n_pass: int = 8) -> Motion:
             if np.any(excess > 0):
                 fb[f] += 1.5 * _smooth_upper(excess, fps)
             R_a, p_a, _ = ch.leg_fk(f, R_pel, q[:, 0:3], q[:, L.ik_qadr])
-            minz = ch.foot_points(f, R_a, p_a, q[:, L.toe_qadr])[..., 2].min(axis=-1)
+            minz = height_above(plan.swing_scene, ch.foot_points(f, R_a, p_a, q[:, L.toe_qadr])).min(axis=-1)
             need = np.where(st_idx[f] < 0, np.maximum(0.004 - minz, 0.0), 0.0)
             if np.any(np.where(st_idx[f] < 0, minz, 1.0) < 0.0):
                 clean = False
@@ -373,7 +414,7 @@ def _realize(plan: Plan, fps: float, n_pass: int = 8) -> Motion:
     info["heel_raise_fb"] = float(fb.max())
     info["swing_lift_fb"] = float(lift.max())
     return Motion(q=q, fps=fps, planted=planted, flight=flight, kind=kind, character=ch,
-                  com=com, zmp_ref=p_ref, info=info)
+                  com=com, zmp_ref=p_ref, info=info, scene=plan.scene)
 
 
 def _rel_swings(plan, ch, t, pel, yaw, swings, st_idx, R_t, p_t, toe_t, lift):
@@ -392,6 +433,8 @@ def _rel_swings(plan, ch, t, pel, yaw, swings, st_idx, R_t, p_t, toe_t, lift):
 
         R0, p0, k0 = ch.stance_pose(f, a.G, a.phi_at(a.t_off))
         R1, p1, k1 = ch.stance_pose(f, b.G, b.phi_at(b.t_on))
+        p0[2] += a.h
+        p1[2] += b.h
         HR0, Hp0 = H(a.t_off)
         HR1, Hp1 = H(b.t_on)
         rel0 = (HR0[0].T @ R0, HR0[0].T @ (p0 - Hp0[0]), k0)
@@ -413,7 +456,7 @@ def _rel_swings(plan, ch, t, pel, yaw, swings, st_idx, R_t, p_t, toe_t, lift):
         HR, Hp = H(t[m])
         R = HR @ Rr
         p = Hp + np.einsum("tij,tj->ti", HR, pr)
-        minz = ch.foot_points(f, R, p, kr)[..., 2].min(axis=-1)
+        minz = height_above(plan.swing_scene, ch.foot_points(f, R, p, kr)).min(axis=-1)
         p[:, 2] += np.maximum(0.0, 0.002 * _bump(s) - minz) + lift[f, m]
         R_t[f, m], p_t[f, m], toe_t[f, m] = R, p, kr
 
@@ -498,7 +541,7 @@ def motion_report(m: Motion) -> dict:
             drift = max(drift, float(np.max(np.abs(csite[a:b, i] - csite[a, i]))))
     return dict(
         limit_violation=float(viol.max()) if viol.size else 0.0,
-        min_height=float(pos[..., 2].min()),
+        min_height=float(height_above(m.scene, pos).min()),
         planted_drift=drift,
         ik_err=float(m.info.get("ik_err", 0.0)),
         root_speed_max=float(np.max(np.linalg.norm(np.diff(q[:, :3], axis=0), axis=1)) * m.fps) if len(q) > 1 else 0.0,
@@ -511,7 +554,8 @@ def check_motion(m: Motion) -> dict:
     if r["limit_violation"] > 1e-9:
         raise GenerationError(f"joint limit violated by {r['limit_violation']:.2e} rad")
     if r["min_height"] < -1e-6:
-        raise GenerationError(f"floor penetration {r['min_height']:.2e} m")
+        raise GenerationError(f"floor penetration {r['min_height']:.2e} m" if m.scene is None
+                              else f"terrain penetration {r['min_height']:.2e} m")
     if r["planted_drift"] > 1e-4:
         raise GenerationError(f"planted foot moved {r['planted_drift']:.2e} m")
     return r

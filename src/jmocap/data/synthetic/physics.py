@@ -33,6 +33,12 @@ from jmocap.data.synthetic.character import Character
 from jmocap.data.synthetic.curves import _wrap
 from jmocap.data.synthetic.errors import GenerationError
 from jmocap.data.synthetic.ground_truth import velocities
+from jmocap.model import scaled_spec
+from jmocap.scene import Scene, add_to_spec, boxes, height_above, surface_height
+
+#: a foot contact whose normal's z is below this (8 degrees off the vertical) touches a terrain
+#: box's side or edge (:func:`simulate_tracking`)
+EDGE_NORMAL_Z = math.cos(math.radians(8.0))
 
 
 @dataclass(frozen=True)
@@ -131,6 +137,22 @@ def pyramid_edges() -> np.ndarray:
     return np.asarray(friction_pyramid_edges(np.asarray(FLOOR_NORMAL, float), FRICTION_MU, 4), float)
 
 
+def terrain_model(ch: Character, scene: Scene | None) -> mujoco.MjModel:
+    """The character's model with the terrain's boxes as static world geoms
+    (:func:`jmocap.scene.add_to_spec`); ``ch.mj`` itself without a scene. The character's bodies,
+    joints and sites are unchanged (the boxes are geoms of the world body)."""
+    if scene is None or not boxes(scene):
+        return ch.mj
+    if ch.spec_args is None:
+        raise ValueError("a terrain simulation needs a character made by character(height)")
+    spec = scaled_spec(None, *ch.spec_args)
+    add_to_spec(spec, scene, friction=FRICTION_MU)
+    mj = spec.compile()
+    if mj.nq != ch.mj.nq or not np.allclose(mj.body_mass, ch.mj.body_mass) or not np.allclose(mj.body_pos, ch.mj.body_pos):
+        raise ValueError("the terrain model's character differs from the generator's")
+    return mj
+
+
 def simulation_model(mj: mujoco.MjModel, dt: float, contact_timeconst: float) -> mujoco.MjModel:
     """A copy of ``mj`` set up for the tracking simulation: timestep ``dt``, ``implicitfast``,
     jmocap's one friction model (``FRICTION_MU``, pyramidal cone) on every geom, no passive
@@ -199,7 +221,7 @@ def lever_split(points: np.ndarray, forces: np.ndarray, heel: np.ndarray, toe: n
 
 
 def floor_split(points: np.ndarray, forces: np.ndarray, heel: np.ndarray, toe: np.ndarray,
-                floor_m: float) -> np.ndarray:
+                floor_m: float, heights: np.ndarray | None = None) -> np.ndarray:
     """Split contact forces (k, 3) at points (k, 3) between a foot's heel and toe sites (3,) that
     are on the floor: :func:`lever_split` when both sites are within ``floor_m`` of the floor
     (z = 0), everything to the one that is when only one is, and to the lower site when neither
@@ -208,28 +230,34 @@ def floor_split(points: np.ndarray, forces: np.ndarray, heel: np.ndarray, toe: n
     The foot's force is always kept; its moment as :func:`lever_split` keeps it when both sites
     are down. A raised site never takes a share: on the ball of the foot (heel up) the whole
     force goes to the toe site, where the lever rule would give the raised heel 5-15 % of it
-    (a point in the air "in contact")."""
-    down = np.array([heel[2] <= floor_m, toe[2] <= floor_m])
+    (a point in the air "in contact"). ``heights`` (2,): the sites' heights above the surface
+    under them (terrain, :func:`jmocap.scene.height_above`); their ``z`` when None."""
+    hh, ht = (heel[2], toe[2]) if heights is None else heights
+    down = np.array([hh <= floor_m, ht <= floor_m])
     if down.all():
         return lever_split(points, forces, heel, toe)
-    take = int(down[1]) if down.any() else int(toe[2] < heel[2])  # 0 heel, 1 toe
+    take = int(down[1]) if down.any() else int(ht < hh)  # 0 heel, 1 toe
     out = np.zeros((2, 3))
     out[take] = forces.sum(0)
     return out
 
 
-def foot_cop_free_moment(force: np.ndarray, moment: np.ndarray, fallback: np.ndarray, threshold: float):
-    """Centre of pressure on the floor (..., 3) and free moment (...) of a foot's force (..., 3)
-    and moment about the world origin (..., 3) (the force-plate formulas ``x = -M_y / F_z``,
-    ``y = M_x / F_z``, ``tau = M_z - (x F_y - y F_x)``). Where ``F_z <= threshold`` the CoP is
-    ``fallback`` (..., 3) put on the floor and the free moment 0."""
+def foot_cop_free_moment(force: np.ndarray, moment: np.ndarray, fallback: np.ndarray, threshold: float,
+                         plane_z: np.ndarray | float = 0.0):
+    """Centre of pressure (..., 3) on the horizontal surface at height ``plane_z`` (the floor, 0,
+    or a box top under the foot) and free moment (...) of a foot's force (..., 3) and moment
+    about the world origin (..., 3): the force-plate formulas for a plate at height ``h``,
+    ``x = (h F_x - M_y) / F_z``, ``y = (M_x + h F_y) / F_z``, ``tau = M_z - (x F_y - y F_x)``.
+    Where ``F_z <= threshold`` the CoP is ``fallback`` (..., 3) put on the surface and the free
+    moment 0."""
     fz = force[..., 2]
+    h = np.broadcast_to(np.asarray(plane_z, float), fz.shape)
     loaded = fz > threshold
     safe = np.where(loaded, fz, 1.0)
-    x = np.where(loaded, -moment[..., 1] / safe, fallback[..., 0])
-    y = np.where(loaded, moment[..., 0] / safe, fallback[..., 1])
+    x = np.where(loaded, (h * force[..., 0] - moment[..., 1]) / safe, fallback[..., 0])
+    y = np.where(loaded, (moment[..., 0] + h * force[..., 1]) / safe, fallback[..., 1])
     tau = np.where(loaded, moment[..., 2] - (x * force[..., 1] - y * force[..., 0]), 0.0)
-    return np.stack([x, y, np.zeros_like(x)], axis=-1), tau
+    return np.stack([x, y, h.copy()], axis=-1), tau
 
 
 def force_contact_labels(grf: np.ndarray, foot_force: np.ndarray, site_z: np.ndarray, threshold: float,
@@ -350,11 +378,11 @@ def _control(M, h, A, Jc, vc, a_des, sw, cfg: PhysicsConfig, mass: float, residu
 
 
 def foot_geoms(ch: Character, mj: mujoco.MjModel):
-    """``(floor, geom_foot, geom_body)`` (ngeom,): the floor planes, each geom's foot (0 left,
-    1 right, -1 none) and body."""
-    floor = np.array([mj.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE for g in range(mj.ngeom)])
-    if not floor.any():
+    """``(floor, geom_foot, geom_body)`` (ngeom,): the ground (the floor plane and the terrain's
+    boxes: every geom of the world body), each geom's foot (0 left, 1 right, -1 none) and body."""
+    if not any(mj.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE for g in range(mj.ngeom)):
         raise ValueError("the model has no floor plane")
+    floor = np.asarray(mj.geom_bodyid) == 0
     geom_foot = np.full(mj.ngeom, -1)
     for f, L in enumerate(ch.legs):
         geom_foot[np.isin(mj.geom_bodyid, [L.ankle_body, L.toe_body])] = f
@@ -369,18 +397,21 @@ def substep_records(S: int, nv: int) -> dict:
                 moment=np.zeros((S, 2, 3)), mid=np.zeros((S, 2, 3)), rescue=np.zeros(S, bool))
 
 
-def record_foot_forces(mj, d, con: _Contacts, sites_xpos: np.ndarray, sub: dict, s: int, floor_m: float) -> None:
+def record_foot_forces(mj, d, con: _Contacts, sites_xpos: np.ndarray, sub: dict, s: int, floor_m: float,
+                       site_h: np.ndarray | None = None) -> None:
     """Substep ``s``'s foot forces into ``sub`` (:func:`substep_records`), after ``mj_step2``: each
     foot's contact forces split between its heel and toe sites on the floor (:func:`floor_split`;
-    ``sites_xpos`` (4, 3) the sites at ``mj_step1``), its total force, its moment about the world
-    origin and its heel-toe midpoint. A foot without contacts gets zeros."""
+    ``sites_xpos`` (4, 3) the sites at ``mj_step1``, ``site_h`` (4,) their heights above the
+    terrain, their ``z`` when None), its total force, its moment about the world origin and its
+    heel-toe midpoint. A foot without contacts gets zeros."""
     fw = _contact_forces(mj, d, con)
     for f in range(2):
         on = con.foot == f
         heel, toe = sites_xpos[2 * f], sites_xpos[2 * f + 1]
         sub["mid"][s, f] = (heel + toe) / 2
         if on.any():
-            sub["grf"][s, 2 * f: 2 * f + 2] = floor_split(con.pos[on], fw[on], heel, toe, floor_m)
+            hts = None if site_h is None else site_h[2 * f: 2 * f + 2]
+            sub["grf"][s, 2 * f: 2 * f + 2] = floor_split(con.pos[on], fw[on], heel, toe, floor_m, hts)
             sub["foot"][s, f] = fw[on].sum(0)
             sub["moment"][s, f] = np.cross(con.pos[on], fw[on]).sum(0)
         else:
@@ -401,7 +432,7 @@ def _rescue(on: bool, pos_err: float, rot_err: float, cfg: PhysicsConfig) -> boo
 
 
 def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: PhysicsConfig = PhysicsConfig(),
-                      lead: int = 0) -> dict:
+                      lead: int = 0, scene: Scene | None = None) -> dict:
     """Track a kinematic motion in MuJoCo C, moved by hinge torques and contacts (a penalised
     root residual only while the root is far off the reference).
 
@@ -417,6 +448,14 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     (:func:`floor_split`); ``foot_force`` (T, 2, 3), ``cop`` (T, 2, 3), ``free_moment`` (T, 2) per
     foot (left, right); ``contacts`` (T, 4) contact labels by force and floor
     (:func:`force_contact_labels`); and ``stats`` (of the returned frames).
+
+    ``scene``: the terrain (:mod:`jmocap.scene`), simulated as static boxes beside the floor
+    (:func:`terrain_model`); heights (the labels' "on the floor", the split's raised sites, the
+    fall test) are then measured above the terrain under each point. A foot that touches a box
+    anywhere but its top (a side or an edge: a contact normal more than 8 degrees off the
+    vertical) is simulated as MuJoCo has it (a scuffed step edge); its frames are counted
+    (``stats["edge_contact_frames"]``): only there may a ground-truth force leave the floor's
+    friction pyramid.
     """
     T = len(q_ref)
     if not 0 <= lead < T:
@@ -424,7 +463,7 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     frame_dt = 1.0 / fps
     n = cfg.substeps_per_frame or max(1, int(math.ceil(frame_dt / cfg.max_dt - 1e-9)))
     dt = frame_dt / n
-    mj = simulation_model(ch.mj, dt, cfg.contact_timeconst)
+    mj = simulation_model(terrain_model(ch, scene), dt, cfg.contact_timeconst)
     nv = mj.nv
     qd_ref, qdd_ref = reference_derivatives(mj, q_ref, fps)
     d = mujoco.MjData(mj)
@@ -450,6 +489,7 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     qd_out = np.zeros((T, nv))
     sub = substep_records(T * n, nv)
     site_z = np.zeros((T, 4))
+    edge = np.zeros(T, bool)
     root_err = np.zeros((T, 2))
     nonfoot = 0
     rescue = False
@@ -478,29 +518,37 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
             a_des = qddr + kp * e + kd * (qdr - d.qvel)
             con, other = _floor_contacts(d, floor, geom_foot, geom_body)
             nonfoot += other
+            if scene is not None and len(con.index) and np.min(d.contact.frame[con.index, 2]) < EDGE_NORMAL_Z:
+                edge[k] = True
             A, Jc = _contact_jacobians(mj, d, con, E, jp)
             sp = d.site_xpos[sites].copy()
+            sh = height_above(scene, sp)
             if i == 0:
-                site_z[k] = sp[:, 2]
+                site_z[k] = sh
             mujoco.mj_fullM(mj, d, M)
             tau = _control(M, d.qfrc_bias, A, Jc, Jc @ d.qvel, a_des, sw, cfg, mass, rescue)
             d.qfrc_applied[:] = tau
             mujoco.mj_step2(mj, d)
             sub["tau"][s] = tau
             # the step's contact forces (computed in mj_step2 for the contacts of mj_step1)
-            record_foot_forces(mj, d, con, sp, sub, s, cfg.site_floor_m)
+            record_foot_forces(mj, d, con, sp, sub, s, cfg.site_floor_m, sh)
         up = d.xmat[ch.pelvis].reshape(3, 3)[2, 2]
-        if not np.all(np.isfinite(d.qpos)) or d.qpos[2] < z_fall or up < cos_tilt:
+        if not np.all(np.isfinite(d.qpos)) or height_above(scene, d.qpos[:3]) < z_fall or up < cos_tilt:
             raise GenerationError(f"the simulated character fell at frame {k}")
-    return frames_from_substeps(ch, q_ref, q_out, qd_out, fps, n, lead, cfg, weight, sub, site_z, root_err, nonfoot)
+    out = frames_from_substeps(ch, q_ref, q_out, qd_out, fps, n, lead, cfg, weight, sub, site_z, root_err, nonfoot,
+                               scene)
+    if scene is not None:
+        out["stats"]["edge_contact_frames"] = int(edge[lead:].sum())
+    return out
 
 
 def frames_from_substeps(ch: Character, q_ref, q_out, qd_out, fps: float, n: int, lead: int, cfg: PhysicsConfig,
-                         weight: float, sub: dict, site_z, root_err, nonfoot: int) -> dict:
+                         weight: float, sub: dict, site_z, root_err, nonfoot: int, scene: Scene | None = None) -> dict:
     """The frame values and statistics of a simulation from its substep records (``sub``,
     :func:`substep_records`: ``tau`` the applied generalised forces, the foot forces of
     :func:`record_foot_forces`, ``rescue`` the substeps with a root residual), the frame states ``q_out`` / ``qd_out`` and the
-    per-frame ``site_z`` (T, 4) and ``root_err`` (T, 2); the first ``lead`` frames are dropped
+    per-frame ``site_z`` (T, 4, heights above the terrain ``scene``) and ``root_err`` (T, 2); the
+    first ``lead`` frames are dropped
     (:func:`simulate_tracking`'s return value)."""
     T = len(q_ref)
     sub_tau, sub_grf, sub_foot, sub_moment = sub["tau"], sub["grf"], sub["foot"], sub["moment"]
@@ -511,8 +559,9 @@ def frames_from_substeps(ch: Character, q_ref, q_out, qd_out, fps: float, n: int
     tau = tent_average(sub_tau, n)[keep]
     grf = tent_average(sub_grf, n)[keep]
     foot_force = tent_average(sub_foot, n)[keep]
-    cop, free_moment = foot_cop_free_moment(foot_force, tent_average(sub_moment, n)[keep],
-                                            sub_mid[::n][keep], threshold)
+    mid = sub_mid[::n][keep]
+    plane = np.zeros(mid.shape[:-1]) if scene is None else surface_height(scene, mid[..., :2])
+    cop, free_moment = foot_cop_free_moment(foot_force, tent_average(sub_moment, n)[keep], mid, threshold, plane)
     q_out, qd_out, q_ref = q_out[keep], qd_out[keep], q_ref[keep]
     rescue_sub, root_err, site_z = rescue_sub[lead * n:], root_err[keep], site_z[keep]
     residual = tau[:, :6].copy()

@@ -27,7 +27,8 @@ the extended generator's everyday motions (:mod:`~.repertoire`)."""
 
 @dataclass
 class Stance:
-    """One contact of one foot with the floor, on ground frame ``G = (x, y, yaw)``.
+    """One contact of one foot with the floor, on ground frame ``G = (x, y, yaw)`` at height ``h``
+    (0: the floor; the top of a box of the plan's terrain otherwise).
 
     ``phi`` knots (t, angle) rock the foot during the stance (< 0 about the heel contact
     point, > 0 about the ball of the foot); ``alpha`` knots (t, a) place the foot's share of the
@@ -45,6 +46,7 @@ class Stance:
     alpha: list = field(default_factory=list)
     load: bool = True
     swing: dict | None = None
+    h: float = 0.0  # height of the surface the footstep stands on (terrain, :mod:`~.terrain`)
 
     def phi_at(self, t):
         return _Track(self.phi)(t) if self.phi else np.zeros(np.shape(t))
@@ -76,6 +78,8 @@ class Plan:
         self.lam_pins: list[tuple[float, float]] = []  # (t, share of the left foot)
         self.heading = 0.0
         self.z_rest = ch.z_stand - style["z_rest_drop"]
+        self.scene = None  # the terrain under the footsteps (:func:`~.terrain.place_terrain`), or None
+        self.swing_scene = None  # what swinging feet stay above (the terrain grown by a margin)
 
     # -- state -----------------------------------------------------------------------------
     def stance(self, foot: int) -> Stance:

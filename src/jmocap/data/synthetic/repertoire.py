@@ -30,6 +30,7 @@ from jmocap.data.synthetic.curves import (
 from jmocap.data.synthetic.motion import Motion, _realize
 from jmocap.data.synthetic.plan import Plan, Pose, _neutral, _upper_names
 from jmocap.data.synthetic.rotations import _rx, _ry
+from jmocap.data.synthetic.terrain import place_terrain
 
 
 def _style(rng: np.random.Generator, ch: Character) -> dict:
@@ -1023,11 +1024,13 @@ EXTENDED_KINDS = tuple(SEGMENTS)
 
 def generate_motion(
     height_m: float, rng: np.random.Generator, duration: float, fps: float = 30.0,
-    kinds: Sequence[str] | None = None, extended: bool = False,
+    kinds: Sequence[str] | None = None, extended: bool = False, terrain: str | None = None,
 ) -> Motion:
     """Plan and solve one kinematic motion of at least ``duration`` seconds (uncropped).
     ``extended``: the extended generator's variation inside the segments (gestures and speed
-    changes while walking; the default kinds then are :data:`EXTENDED_KINDS`)."""
+    changes while walking; the default kinds then are :data:`EXTENDED_KINDS`). ``terrain``: a
+    kind of :data:`~.terrain.TERRAIN_KINDS` placed under the plan's footsteps
+    (:func:`~.terrain.place_terrain`; the motion carries the scene)."""
     ch = character(height_m)
     style = _style(rng, ch)
     plan = Plan(ch, rng, style, extended=extended)
@@ -1042,4 +1045,6 @@ def generate_motion(
         kind = kinds[int(rng.integers(len(kinds)))]
         SEGMENTS[kind](plan)
         seg_stand(plan, float(rng.uniform(0.3, 0.8)), gestures=False)
+    if terrain is not None:
+        place_terrain(plan, rng, terrain)
     return _realize(plan, fps)
