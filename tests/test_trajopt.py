@@ -23,6 +23,7 @@ from jmocap.methods import get_method
 from jmocap.methods import stages as S
 from jmocap.methods import trajopt as TO
 from jmocap.model import character
+from jmocap.scene import Scene, sdf
 
 DEMO = files("jmocap") / "assets/demo/ground_truth"
 
@@ -219,6 +220,50 @@ def test_per_frame_jacobians_match_autodiff():
         auto_c = jax.jit(jax.jacfwd(lambda dq: TO._frame_residuals(
             model, P.integrate_positions(model, q_c, dq, 1.0), prior, cam, config, contacts=lab)[2]))(jnp.zeros(model.nv))
         np.testing.assert_allclose(np.asarray(j_c), np.asarray(auto_c), atol=1e-9 * float(jnp.max(jnp.abs(auto_c))))
+
+
+def test_terrain_heights_and_their_jacobians():
+    """With a scene (issue 21), the per-frame stage's floor and contact rows measure sole heights
+    above the terrain: the rows are those of the scene's signed distance (itself tested against
+    MuJoCo in test_scene.py) and their analytic Jacobians (the surface normal times the point
+    Jacobians) match forward-mode autodiff along ``q (+) dq``, float64, with the left foot's soles
+    3 cm inside a turned box and the right foot beside it; a scene without boxes is the floor."""
+    clip, _ = _walk()
+    config = get_method("trajopt").make_config()
+    with x64():
+        model = character(clip.height_m, clip.mass_kg)
+        q = jnp.asarray(clip.gt_q[10], jnp.float64)
+        pts = S.sole_points(model, P.forward_kinematics(model, q))[0]
+        left = np.asarray(pts[:4])
+        top = float(left[:, 2].mean()) + 0.03
+        axis = left[2:, :2].mean(0) - left[:2, :2].mean(0)  # the left foot's heel -> toe, turned along it
+        c, s = axis / np.linalg.norm(axis)
+        scene = Scene(jnp.asarray([[*left[:, :2].mean(0), (top - 0.05) / 2]]),
+                      jnp.asarray([[np.linalg.norm(axis) / 2 + 0.06, 0.1, (top + 0.05) / 2]]),
+                      jnp.asarray([[[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]]))
+        cam = ClipInputs.from_clip(clip).camera
+        cam = cam.replace(intrinsics=jnp.asarray(cam.intrinsics, jnp.float64),
+                          extrinsics=jnp.asarray(cam.extrinsics, jnp.float64))
+        prior = jnp.zeros((25, 3))
+        lab = jnp.ones(4)
+        res = jax.jit(lambda q, sc: TO._frame_residuals(model, q, prior, cam, config, contacts=lab, scene=sc))
+        _, _, o, j = res(q, scene)
+        h = np.asarray(sdf(scene, pts))
+        assert np.all(h[:4] < -0.01) and np.all(h[4:] > 0.0)  # left inside the box, right beside it
+        want_c = np.asarray(TO.robust_height(jnp.asarray(h), config)[0])
+        np.testing.assert_allclose(np.asarray(o[-8:]), want_c, rtol=1e-9)
+        a_floor = np.sqrt(config.w_floor) / config.floor_sigma
+        floor_rows = np.asarray(o[-16:-8])
+        np.testing.assert_allclose(floor_rows, a_floor * np.maximum(config.floor_margin_m - h, 0.0), rtol=1e-9)
+        auto = jax.jit(jax.jacfwd(lambda dq: TO._frame_residuals(
+            model, P.integrate_positions(model, q, dq, 1.0), prior, cam, config, contacts=lab, scene=scene)[2]))(
+            jnp.zeros(model.nv))
+        np.testing.assert_allclose(np.asarray(j), np.asarray(auto), atol=1e-9 * float(jnp.max(jnp.abs(auto))))
+        # no boxes: the floor, exactly as without a scene
+        flat = res(q, Scene.empty(np.float64))
+        plain = jax.jit(lambda q: TO._frame_residuals(model, q, prior, cam, config, contacts=lab))(q)
+        for x, y in zip(flat, plain, strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
 @pytest.mark.parametrize("tile", [0, 5])

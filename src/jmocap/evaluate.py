@@ -49,6 +49,7 @@ from jmocap import metrics as M
 from jmocap.data.archive import Archive
 from jmocap.data.clip import Clip
 from jmocap.inputs import ClipInputs
+from jmocap.inputs import stack as stack_inputs
 from jmocap.io import atomic_write
 from jmocap.model import Model, character
 from jmocap.pipeline import subject_model
@@ -189,7 +190,7 @@ def _estimate_subject(clip: Clip, how: str) -> Clip:
 
 def _prepare(clips: list[Clip], length: int, size: int, subject_height: str = "given") -> _Batch:
     padded = clips + [clips[-1]] * (size - len(clips))
-    inputs = _stack([ClipInputs.from_clip(c, length) for c in padded])
+    inputs = stack_inputs([ClipInputs.from_clip(c, length) for c in padded])
     estimates = [subject_model(_estimate_subject(c, subject_height)) for c in padded]
     models = _stack(estimates)
     subjects = [subject_model(c) for c in padded]

@@ -43,6 +43,7 @@ from jmocap import physics as P
 from jmocap.constants import DEFAULT_HEIGHT_M
 from jmocap.data.clip import Clip
 from jmocap.inputs import ClipInputs
+from jmocap.inputs import stack as stack_inputs
 from jmocap.model import Model, character
 from jmocap.motion import Motion
 
@@ -297,7 +298,7 @@ class Reconstructor:
             real.append(r)
             track.append(ClipInputs.from_clip(c).camera_track[idx])  # every frame's camera
         kp, real, track = np.stack(kp), np.stack(real), np.stack(track)
-        whole = _stack([ClipInputs.from_clip(c).replace(keypoints=None, mask=None, camera_track=None) for c in rows])
+        whole = stack_inputs([ClipInputs.from_clip(c).replace(keypoints=None, mask=None, camera_track=None) for c in rows])
         models = _stack([subject_model(c) for c in rows])
         zero = self.method.init_carry(subject_model(rows[0]), self.config)
         carry = jax.tree.map(lambda a: np.zeros((G, *np.shape(a)), np.float32), zero)

@@ -143,9 +143,10 @@ def pad(scene: Scene, n: int) -> Scene:
     if n < k:
         raise ValueError(f"cannot pad a scene of {k} boxes to {n}")
     extra = n - k
-    centers = np.concatenate([np.asarray(scene.centers), np.tile([0.0, 0.0, -EMPTY_DEPTH_M], (extra, 1))])
-    halves = np.concatenate([np.asarray(scene.half_sizes), np.zeros((extra, 3))])
-    rots = np.concatenate([np.asarray(scene.rotations), np.broadcast_to(np.eye(3), (extra, 3, 3))])
+    dt = np.asarray(scene.centers).dtype
+    centers = np.concatenate([np.asarray(scene.centers), np.tile(np.array([0.0, 0.0, -EMPTY_DEPTH_M], dt), (extra, 1))])
+    halves = np.concatenate([np.asarray(scene.half_sizes), np.zeros((extra, 3), dt)])
+    rots = np.concatenate([np.asarray(scene.rotations), np.broadcast_to(np.eye(3, dtype=dt), (extra, 3, 3))])
     return Scene(centers, halves, rots)
 
 

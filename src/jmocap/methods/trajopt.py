@@ -79,6 +79,7 @@ from jmocap.motion import Motion
 from jmocap.physics.linalg import cho_solve, cholesky
 from jmocap.physics.qp import friction_pyramid_edges
 from jmocap.physics.rotations import quat_error, quat_exp, quat_mul, quat_normalize
+from jmocap.scene import Scene, sdf
 
 Array = jnp.ndarray
 
@@ -100,6 +101,9 @@ class TrajOptConfig(KinematicConfig):
     window: int = static(0)  # frames per window (0: the whole clip is one window)
     overlap: int = static(32)  # frames shared by consecutive windows (cross-faded)
     contact_source: str = static("mlp")  # "mlp" (Rempe's estimator) or "tpnet" (TPNet's head)
+    # fit on the clip's terrain (its scene: every height above the boxes and the floor) or, False,
+    # on the floor z = 0 whatever the clip carries (the ablation trajopt_no_scene)
+    use_scene: bool = static(True)
     nnls_iterations: int = static(60)  # FISTA iterations of the per-frame force problem
     # --- 2D evidence ---
     w_reproj: float = 1.0
@@ -231,6 +235,24 @@ class Problem:
     prior_rr: Array  # (T, J, 3) TPNet's root-relative joints (world orientation)
     contacts: Array  # (T, 4) contact labels in {0, 1}
     anchor_kp: Array  # (T, J, 3) joints of the kinematic fit (the physics stage's anchor)
+    scene: Scene | None = None  # the terrain (jmocap.scene); None or no boxes: the floor z = 0
+
+
+def surface_heights(scene: Scene | None, points: Array) -> Array:
+    """Heights (...,) of points (..., 3) above the terrain: their signed distance to the scene
+    (:func:`jmocap.scene.sdf`: the floor and the boxes), ``z`` without a scene (or without boxes,
+    static). Every floor and contact term of the method measures heights with it."""
+    if scene is None or scene.centers.shape[-2] == 0:
+        return points[..., 2]
+    return sdf(scene, points)
+
+
+def surface_heights_and_normals(scene: Scene | None, points: Array) -> tuple[Array, Array]:
+    """:func:`surface_heights` of points (P, 3) and their gradients (P, 3) (the unit normal of
+    the nearest surface; ``z`` without boxes)."""
+    if scene is None or scene.centers.shape[-2] == 0:
+        return points[..., 2], jnp.zeros_like(points).at[..., 2].set(1.0)
+    return jax.vmap(jax.value_and_grad(lambda p: sdf(scene, p)))(points)
 
 
 def _vertical_extent(keypoints: Array, mask: Array) -> Array:
@@ -415,13 +437,18 @@ def kinematic_terms(model: Model, q: Array, geo: FrameGeometry, prob: Problem, c
     m3 = m[2:] * m[1:-1] * m[:-2]
     accel = jnp.sum(acc**2, (-1, -2)) / config.accel_sigma**2
 
-    # contacts: a labelled site's pair of sole points on the floor and still
+    # contacts: a labelled site's pair of sole points on the floor (the terrain) and still
     sole = geo.sole.reshape(q.shape[0], 4, 2, 3)
+    if prob.scene is None or prob.scene.centers.shape[-2] == 0:  # the floor: z (static)
+        sole_h, pair_h = geo.sole[..., 2], sole[..., 2]
+    else:
+        sole_h = surface_heights(prob.scene, geo.sole)  # (T, 8)
+        pair_h = sole_h.reshape(q.shape[0], 4, 2)
     c = prob.contacts.astype(q.dtype)
-    height = jnp.sum(c * jnp.sum(sole[..., 2] ** 2, -1), -1) / config.contact_height_sigma**2
+    height = jnp.sum(c * jnp.sum(pair_h**2, -1), -1) / config.contact_height_sigma**2
     step = jnp.sum((sole[1:] - sole[:-1]) ** 2, (-1, -2)) * prob.fps**2  # (T-1, 4)
     still = jnp.sum(c[1:] * c[:-1] * step, -1) / config.contact_vel_sigma**2
-    floor = jnp.sum(jax.nn.relu(config.floor_margin_m - geo.sole[..., 2]) ** 2, -1) / config.floor_sigma**2
+    floor = jnp.sum(jax.nn.relu(config.floor_margin_m - sole_h) ** 2, -1) / config.floor_sigma**2
 
     return dict(
         reproj=_frames_mean(reproj, m),
@@ -468,10 +495,11 @@ class FrameDynamics:
 
 
 def frame_dynamics(model: Model, kin, q: Array, qd: Array, qdd: Array, allowed: Array, config: TrajOptConfig,
-                   edges: Array) -> FrameDynamics:
+                   edges: Array, scene: Scene | None = None) -> FrameDynamics:
     """One frame's root-wrench residual after the best contact forces (variable projection):
     forces only at ``allowed`` sole points (8,) bool (those of labelled sites) and at any within
-    ``config.touch_m`` of the floor (its current height, a constant of the step), each a non-negative combination of the
+    ``config.touch_m`` of the floor or the ``scene``'s terrain (:func:`surface_heights`; its
+    current height, a constant of the step), each a non-negative combination of the
     pyramid edges ``edges`` (4, 3). Units: the force rows in body weights, the torque rows in
     body weight x 1 m."""
     pts, bodies, _ = S.sole_points(model, kin)
@@ -480,7 +508,8 @@ def frame_dynamics(model: Model, kin, q: Array, qd: Array, qdd: Array, allowed: 
     weight = S.body_weight(model, q.dtype)
     # generalised root force of a unit body-weight force along each edge at each point
     A = jnp.einsum("pkv,ek->vpe", jacp[..., :6], edges)[:6] * weight  # (6, 8, 4)
-    allowed = allowed | (jax.lax.stop_gradient(pts[:, 2]) < config.touch_m)  # touching: may push too
+    touching = jax.lax.stop_gradient(surface_heights(scene, pts)) < config.touch_m
+    allowed = allowed | touching  # touching: may push too
     A = A * allowed[None, :, None]
     A = A.reshape(6, -1) / weight
     b = wrench[:6] / weight
@@ -499,7 +528,7 @@ class FrameGeometry:
 
 def geometry(model: Model, q: Array, layout: str, *, dynamics=None) -> FrameGeometry:
     """Per frame, from one forward-kinematics pass: the layout's joints, the sole points and,
-    with ``dynamics = (qd, qdd, allowed, config)``, the frame's dynamics
+    with ``dynamics = (qd, qdd, allowed, config, scene)``, the frame's dynamics
     (:func:`frame_dynamics`)."""
     if dynamics is None:
         def one(qt):
@@ -509,22 +538,23 @@ def geometry(model: Model, q: Array, layout: str, *, dynamics=None) -> FrameGeom
 
         kp, sole = jax.vmap(one)(q)
         return FrameGeometry(kp, sole)
-    qd, qdd, allowed, config = dynamics
+    qd, qdd, allowed, config, scene = dynamics
     edges = friction_pyramid_edges(jnp.asarray([0.0, 0.0, 1.0], q.dtype), config.mu)
 
     def one_dyn(qt, v, a, ok):
         kin = P.forward_kinematics(model, qt)
-        return P.keypoints(model, qt, layout, kin=kin), frame_dynamics(model, kin, qt, v, a, ok, config, edges)
+        return P.keypoints(model, qt, layout, kin=kin), frame_dynamics(model, kin, qt, v, a, ok, config, edges, scene)
 
     kp, fd = jax.vmap(one_dyn)(q, qd, qdd, allowed)
     return FrameGeometry(kp, fd.points, fd)
 
 
 def dynamics_inputs(model: Model, q: Array, prob: Problem, config: TrajOptConfig):
-    """``(qd, qdd, labelled, config)`` for :func:`geometry`: the finite differences and the sole
-    points (T, 8) of labelled sites (:func:`frame_dynamics` adds those touching the floor)."""
+    """``(qd, qdd, labelled, config, scene)`` for :func:`geometry`: the finite differences and
+    the sole points (T, 8) of labelled sites (:func:`frame_dynamics` adds those touching the
+    floor or the problem's terrain)."""
     qd, qdd = frame_velocities(q, prob.fps, prob.length)
-    return qd, qdd, jnp.repeat(prob.contacts > 0.5, 2, axis=-1), config
+    return qd, qdd, jnp.repeat(prob.contacts > 0.5, 2, axis=-1), config, prob.scene
 
 
 def dynamics_term(fd: FrameDynamics, prob: Problem, config: TrajOptConfig) -> Array:
@@ -672,7 +702,7 @@ def diagonal_scale(model: Model, x: Trajectory, prob: Problem, config: TrajOptCo
 
 
 def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, config: TrajOptConfig,
-                     depth: Array | None = None, contacts: Array | None = None):
+                     depth: Array | None = None, contacts: Array | None = None, scene: Scene | None = None):
     """One frame's residuals and their Jacobians with respect to a step ``dq`` (nv,) of the
     configuration (``q (+) dq``, :func:`jmocap.physics.integrate_positions`), from one
     forward-kinematics pass (the analytic point Jacobians): the projected joints (J, 2) in
@@ -681,15 +711,22 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
     ``depth`` (the frame's log-depth target, :func:`depth_track`) the prior residuals end with
     ``sqrt(w_depth) (log z - depth) / depth_sigma`` of the root's camera depth ``z``. With
     ``contacts`` (4,), the frame's contact labels, they end with the robust height residuals of
-    the labelled sites' sole points, :func:`robust_height`."""
+    the labelled sites' sole points, :func:`robust_height`. Sole heights are above the
+    ``scene``'s terrain (:func:`surface_heights_and_normals`: their Jacobian is the surface
+    normal's component of the points' Jacobians)."""
     layout = get_layout(config.layout)
     roots = np.asarray(layout.root_indices)
     kin = P.forward_kinematics(model, q)
     ids = model.site_ids(layout.sites)
     p3 = P.keypoints(model, q, config.layout, kin=kin)
     jk, _ = P.point_jacobian(model, kin, p3, np.asarray(model.topo.site_body)[np.asarray(ids)])  # (J, 3, nv)
-    pts, bodies, sole_h = S.sole_points(model, kin)
+    pts, bodies, _ = S.sole_points(model, kin)
     js, _ = P.point_jacobian(model, kin, pts, bodies)
+    if scene is None or scene.centers.shape[-2] == 0:
+        sole_h, j_h = pts[:, 2], js[:, 2, :]
+    else:
+        sole_h, normal = surface_heights_and_normals(scene, pts)
+        j_h = jnp.einsum("pk,pkv->pv", normal, js)
     # pinhole projection and its derivative
     R, t = cam.extrinsics[:3, :3], cam.extrinsics[:3, 3]
     xc = p3 @ R.T + t
@@ -719,7 +756,7 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
     j_other = jnp.concatenate([
         a_pose * j_rr.reshape(-1, model.nv),
         -a_lim * ((out_lo > 0).astype(q.dtype) + (out_hi > 0).astype(q.dtype))[:, None] * sel,
-        -a_floor * (sole_h < config.floor_margin_m).astype(q.dtype)[:, None] * js[:, 2, :],
+        -a_floor * (sole_h < config.floor_margin_m).astype(q.dtype)[:, None] * j_h,
     ])
     if depth is not None:
         # the free joint's first three velocity coordinates move the root in the world frame
@@ -733,7 +770,7 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
         lab = jnp.repeat(contacts.astype(q.dtype), pts.shape[0] // contacts.shape[0])  # (8,)
         rh, drh = robust_height(sole_h, config)
         other = jnp.concatenate([other, lab * rh])
-        j_other = jnp.concatenate([j_other, (lab * drh)[:, None] * js[:, 2, :]])
+        j_other = jnp.concatenate([j_other, (lab * drh)[:, None] * j_h])
     return uv, j_uv, other, j_other
 
 
@@ -796,7 +833,7 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
             return config.w_reproj * jnp.sum(cf * geman_mcclure(r2, c)), r2
 
         def linearise(qt):
-            return _frame_residuals(model, qt, prior, cam, config, dz, lab)
+            return _frame_residuals(model, qt, prior, cam, config, dz, lab, prob.scene)
 
         def step(k, s):
             # ``s`` holds the current point's residuals and Jacobians: a trial point's
@@ -891,13 +928,21 @@ def problem(model: Model, inputs: ClipInputs, q_hat: Array, contacts: Array, con
         unit_px=unit, fps=jnp.asarray(inputs.fps, q_hat.dtype), mask=mask,
         length=jnp.sum(mask.astype(jnp.int32)), base_quat=base, prior_rr=prior_rr,
         contacts=(contacts > config.contact_threshold).astype(q_hat.dtype) * mask[:, None], anchor_kp=prior,
+        scene=None if inputs.scene is None or not config.use_scene
+        else jax.tree.map(lambda a: jnp.asarray(a, q_hat.dtype), inputs.scene),
     )
 
 
-def initial_trajectory(model: Model, q_hat: Array, mask: Array) -> Array:
+def _sole_heights(model: Model, q: Array, scene: Scene | None) -> Array:
+    """(T, 8) heights of the sole points of every frame above the terrain (:func:`surface_heights`)."""
+    return jax.vmap(lambda x: surface_heights(scene, S.sole_points(model, P.forward_kinematics(model, x))[0]))(q)
+
+
+def initial_trajectory(model: Model, q_hat: Array, mask: Array, scene: Scene | None = None) -> Array:
     """TPNet's poses, moved vertically as a whole so that the lowest sole point over the clip's
-    real frames touches the floor (TPNet's depth error floats or sinks the body)."""
-    sole_h = jax.vmap(lambda x: S.sole_points(model, P.forward_kinematics(model, x))[2])(q_hat)
+    real frames touches the floor, or the ``scene``'s terrain (TPNet's depth error floats or
+    sinks the body)."""
+    sole_h = _sole_heights(model, q_hat, scene)
     low = jnp.min(jnp.where(mask[:, None], sole_h, jnp.inf))
     low = jnp.where(jnp.isfinite(low), low, 0.0)
     return q_hat.at[:, 2].add(-low)
@@ -930,8 +975,8 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     prob = prob.replace(base_quat=base)
     rep1 = StageReport(before, f0(x1, prob), jnp.zeros((), q1.dtype), jnp.asarray(config.frame_iterations))
     # outlier labels: points labelled in contact that the fit holds far above the floor (their
-    # App. B.4 fits the floor robustly; here the floor is known, z = 0)
-    sole_h = jax.vmap(lambda x: S.sole_points(model, P.forward_kinematics(model, x))[2])(q1)
+    # App. B.4 fits the floor robustly; here the floor is known, z = 0, or the clip's terrain)
+    sole_h = _sole_heights(model, q1, prob.scene)
     low = jnp.min(jnp.where(prob.mask[:, None], sole_h, jnp.inf))
     x1 = x1.replace(root_pos=x1.root_pos.at[:, 2].add(-jnp.where(jnp.isfinite(low), low, 0.0)))
     site_h = jnp.min(sole_h.reshape(-1, 4, 2), -1) - jnp.where(jnp.isfinite(low), low, 0.0)
@@ -960,19 +1005,20 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     return Fit(q, force * prob.mask[:, None, None], contacts, diagnostics, q_kin)
 
 
-def outputs(model: Model, q: Array, force: Array, mask: Array, fps) -> tuple[Array, Array, Array, dict]:
+def outputs(model: Model, q: Array, force: Array, mask: Array, fps,
+            scene: Scene | None = None) -> tuple[Array, Array, Array, dict]:
     """``(qd, tau, grf, report)`` of a trajectory and its sole-point forces (T, 8, 3):
     ``tau = M qdd + h - J_c^T lambda`` at the finite differences of :func:`frame_velocities`
     (``tau[:6]`` the residual root wrench), the forces summed per contact site (T, 4, 3), and
-    the residual and penetration that remain."""
+    the residual and penetration (into the floor or the ``scene``'s terrain) that remain."""
     length = jnp.sum(mask.astype(jnp.int32))
     qd, qdd = frame_velocities(q, jnp.asarray(fps, q.dtype), length)
 
     def one(qt, v, a, f):
         kin = P.forward_kinematics(model, qt)
-        pts, bodies, h = S.sole_points(model, kin)
+        pts, bodies, _ = S.sole_points(model, kin)
         jacp, _ = P.point_jacobian(model, kin, pts, bodies)
-        return P.rnea(model, qt, v, a, kin=kin) - jnp.einsum("pkv,pk->v", jacp, f), h
+        return P.rnea(model, qt, v, a, kin=kin) - jnp.einsum("pkv,pk->v", jacp, f), surface_heights(scene, pts)
 
     tau, height = jax.vmap(one)(q, qd, qdd, force)
     m = mask.astype(q.dtype)
@@ -1037,9 +1083,11 @@ def fit_clip(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) 
     def cut(a):
         return a[idx] if (hasattr(a, "ndim") and a.ndim and a.shape[0] == T) else a
 
-    probs = jax.tree.map(cut, prob)
+    probs = jax.tree.map(cut, prob.replace(scene=None))  # the scene is the clip's, not per frame
     local = jnp.asarray(prob.mask)[idx]
+    windows = lambda a: jnp.broadcast_to(a, (len(starts), *jnp.shape(a)))  # noqa: E731
     probs = probs.replace(mask=local, length=jnp.sum(local.astype(jnp.int32), -1),
+                          scene=None if prob.scene is None else jax.tree.map(windows, prob.scene),
                           unit_px=jnp.broadcast_to(prob.unit_px, (len(starts),)),
                           intrinsics=jnp.broadcast_to(prob.intrinsics, (len(starts), *prob.intrinsics.shape)),
                           fps=jnp.broadcast_to(prob.fps, (len(starts),)))
@@ -1079,9 +1127,10 @@ def reconstruct(params: dict, model: Model, inputs: ClipInputs,
     tp = S.target_pose(params, model, inputs, config)
     mask = jnp.asarray(inputs.mask)
     prob_c = contact_labels(params, inputs, S.contact_probability(tp.contact_logits), config, tp.trans_cam[:, 2])
-    q0 = initial_trajectory(model, tp.q_hat, mask)
-    out = fit_clip(model, problem(model, inputs, tp.q_hat, prob_c, config), q0, config)
-    qd, tau, grf, report = outputs(model, out.q, out.force, mask, inputs.fps)
+    prob = problem(model, inputs, tp.q_hat, prob_c, config)
+    q0 = initial_trajectory(model, tp.q_hat, mask, prob.scene)
+    out = fit_clip(model, prob, q0, config)
+    qd, tau, grf, report = outputs(model, out.q, out.force, mask, inputs.fps, prob.scene)
     return Motion(out.q, qd, tau, grf, prob_c * mask[:, None], tp.q_hat, mask,
                   diagnostics={**out.diagnostics, **report})
 
@@ -1102,5 +1151,8 @@ METHOD = register(
 
 register_variant(Variant("trajopt_tpnet_contacts", "trajopt", {"contact_source": "tpnet"},
                          "trajopt with TPNet's contact head instead of Rempe et al.'s estimator (ablation)"))
+register_variant(Variant("trajopt_no_scene", "trajopt", {"use_scene": False},
+                         "trajopt on the floor z = 0 whatever terrain the clip carries (ablation of the "
+                         "interaction term, issue 21)"))
 
 __all__ = ["METHOD", "TrajOptConfig", "Trajectory", "fit", "frame_velocities", "reconstruct"]
