@@ -113,3 +113,52 @@ def test_terrain_options_are_checked():
     with pytest.raises(ValueError, match="QP tracker"):
         S.SynthConfig(terrain=("step_up",), physics=True, physics_cfg=S.PhysicsConfig(controller="sampling"))
     assert cli.build_parser().parse_args(["data", "synth", "--out", "x", "--clips", "1", "--terrain"]).terrain == TERRAIN_KINDS
+
+
+def test_inputs_carry_the_scene_padded_and_batches_pad_to_the_largest():
+    """``ClipInputs.from_clip`` pads a clip's boxes to its scene slots (8, or the next power of
+    two) with boxes that change no distance; a clip without a scene has none; ``inputs.stack``
+    pads a mixed batch to its largest scene; the padded scene's distances are the clip's."""
+    from jmocap.inputs import ClipInputs, scene_slots, stack
+
+    assert [scene_slots(n) for n in (0, 1, 8, 9, 17)] == [0, 8, 8, 16, 32]
+    c = S.generate_clip(3, 0, S.SynthConfig(frames=30, terrain=("stairs_up",)))
+    flat = S.generate_clip(3, 0, S.SynthConfig(frames=30, kinds=("walk",)))
+    a, b = ClipInputs.from_clip(c, 32), ClipInputs.from_clip(flat, 32)
+    assert a.scene.num_boxes == 8 and b.scene.num_boxes == 0
+    batch = stack([a, b])
+    assert batch.scene.centers.shape == (2, 8, 3) and batch.keypoints.shape[0] == 2
+    pts = np.random.default_rng(0).uniform([-3, -3, -0.2], [3, 3, 1.0], (500, 3))
+    with x64():
+        own = np.asarray(sdf(jax.tree.map(jnp.asarray, c.scene), jnp.asarray(pts)))
+        for i, want in ((0, own), (1, pts[:, 2])):
+            got = np.asarray(sdf(jax.tree.map(lambda x, i=i: jnp.asarray(x[i], jnp.float64), batch.scene), jnp.asarray(pts)))
+            np.testing.assert_allclose(got, want, atol=1e-6)  # the boxes are stored in float32
+
+
+@pytest.mark.slow
+def test_trajopt_fits_the_feet_to_the_terrain():
+    """On a simulated walk up a step with exact keypoints, ``trajopt`` (the scene's distance in
+    its contact and floor terms) keeps the feet out of the box and the labelled ones on it,
+    where ``trajopt_no_scene`` (the floor z = 0) sinks them into it."""
+    from jmocap.methods import resolve
+    from jmocap.pipeline import Reconstructor
+    from jmocap.weights import load_run_params
+
+    clip = S.generate_clip(14, 0, S.SynthConfig(frames=120, physics=True, terrain=("step_up",),
+                                                corruption=S.Corruption.none()))
+    ch = S.character(round(clip.height_m, 2))
+    gt_feet = S.site_trajectories(ch, clip.gt_q.astype(np.float64), ch.contact_sites)
+    assert ((clip.gt_contacts > 0) & (gt_feet[..., 2] > 0.15)).any(1).sum() > 60  # standing on a 22 cm step
+    out = {}
+    for name in ("trajopt", "trajopt_no_scene"):
+        params, config = load_run_params(None, method=name)  # the variant's change applied
+        r = Reconstructor(params, config, method=resolve(name)[0].name, batch=1).run([clip])[0]
+        feet = S.site_trajectories(ch, np.asarray(r["q"], np.float64), ch.contact_sites)
+        with x64():
+            out[name] = np.asarray(sdf(jax.tree.map(jnp.asarray, clip.scene), jnp.asarray(feet)))
+    on_box = height_above(clip.scene, gt_feet)
+    assert out["trajopt"].min() > -0.02
+    assert out["trajopt_no_scene"].min() < -0.05  # the flat fit's feet sink into the step
+    labelled = clip.gt_contacts > 0
+    assert np.median(np.abs(out["trajopt"][labelled])) < 0.03 and np.all(on_box[labelled] < 0.05)
