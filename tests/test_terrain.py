@@ -138,9 +138,9 @@ def test_inputs_carry_the_scene_padded_and_batches_pad_to_the_largest():
 
 @pytest.mark.slow
 def test_trajopt_fits_the_feet_to_the_terrain():
-    """On a simulated walk up a step with exact keypoints, ``trajopt`` (the scene's distance in
-    its contact and floor terms) keeps the feet out of the box and the labelled ones on it,
-    where ``trajopt_no_scene`` (the floor z = 0) sinks them into it."""
+    """On a simulated walk up a 22 cm step with exact keypoints, ``trajopt`` (the scene's distance
+    in its contact and floor terms) keeps the feet out of the box and the labelled ones on its
+    surfaces, where ``trajopt_no_scene`` (the floor z = 0) pulls them down into it."""
     from jmocap.methods import resolve
     from jmocap.pipeline import Reconstructor
     from jmocap.weights import load_run_params
@@ -158,7 +158,11 @@ def test_trajopt_fits_the_feet_to_the_terrain():
         with x64():
             out[name] = np.asarray(sdf(jax.tree.map(jnp.asarray, clip.scene), jnp.asarray(feet)))
     on_box = height_above(clip.scene, gt_feet)
-    assert out["trajopt"].min() > -0.02
-    assert out["trajopt_no_scene"].min() < -0.05  # the flat fit's feet sink into the step
     labelled = clip.gt_contacts > 0
-    assert np.median(np.abs(out["trajopt"][labelled])) < 0.03 and np.all(on_box[labelled] < 0.05)
+    assert np.all(on_box[labelled] < 0.05)
+    # measured: trajopt min -4 mm, 0.8 % of frames below -1 mm, labelled sites 6 mm from the
+    # surface (median); trajopt_no_scene min -26 mm, 5.8 % of frames below -1 cm, 29 mm
+    fit, flat = out["trajopt"], out["trajopt_no_scene"]
+    assert fit.min() > -0.01 and np.mean(fit.min(1) < -0.001) <= 0.03
+    assert np.mean(flat.min(1) < -0.01) >= 0.03
+    assert np.median(np.abs(fit[labelled])) < 0.015 < np.median(np.abs(flat[labelled]))

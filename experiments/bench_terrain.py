@@ -1,0 +1,69 @@
+"""Seconds per clip of ``trajopt`` on terrain clips, with their scene (every height a signed
+distance to the floor and the boxes) and without it (``trajopt_no_scene``: the floor ``z = 0``,
+the flat-floor program), side by side in one run, with the ratio.
+
+    .venv/bin/python experiments/bench_terrain.py [--frames 300] [--clips 4]
+
+Clips are the held-out terrain archive's (``data/heldout_terrain``, docs/evaluation.md
+"Terrain"), cropped or edge-padded to ``--frames``, one clip per call (batch 1). For each: the
+compile time (first call, reported separately), then the mean wall time per clip over ``--clips``
+clips. Scenes are padded to 8 boxes (``jmocap.inputs.scene_slots``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import numpy as np
+
+from jmocap.data.archive import Archive
+from jmocap.inputs import ClipInputs
+from jmocap.methods import resolve
+from jmocap.pipeline import subject_model
+from jmocap.weights import load_run_params
+
+METHODS = ("trajopt_no_scene", "trajopt")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--archive", default="data/heldout_terrain")
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--clips", type=int, default=4)
+    args = ap.parse_args()
+
+    arch = Archive(args.archive)
+    clips = []
+    for name in arch.names()[: args.clips]:
+        clip = arch.load(name)
+        idx = np.minimum(np.arange(args.frames), clip.num_frames - 1)  # cropped or edge-padded
+        inputs = ClipInputs.from_clip(clip)
+        inputs = inputs.replace(keypoints=inputs.keypoints[idx], mask=np.ones(args.frames, bool),
+                                camera_track=inputs.camera_track[idx])
+        clips.append((inputs, subject_model(clip)))
+    rows = []
+    for name in METHODS:
+        params, config = load_run_params(None, method=name)
+        method = resolve(name)[0]
+        fn = jax.jit(lambda p, m, i, c, method=method: method.reconstruct(p, m, i, c))
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(params, clips[0][1], clips[0][0], config).q)
+        compile_s = time.perf_counter() - t0
+        times = []
+        for inputs, model in clips:
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(params, model, inputs, config).q)
+            times.append(time.perf_counter() - t0)
+        rows.append((name, compile_s, float(np.mean(times))))
+        print(f"{name}: compile {compile_s:.0f} s, {rows[-1][2]:.2f} s per clip", flush=True)
+    ref = rows[0][2]
+    print(f"\n{args.frames}-frame clips, batch 1, {len(clips)} clips\n\n"
+          f"| method | compile s | s / clip | x `{rows[0][0]}` |\n|---|---:|---:|---:|")
+    for name, c, s in rows:
+        print(f"| `{name}` | {c:.0f} | {s:.2f} | {s / ref:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
