@@ -27,26 +27,14 @@ from jmocap.weights import load_run_params
 METHODS = ("trajopt", "dnd", "dnd_trajopt_estimated", "dnd_trajopt")
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--archive", default="data/heldout_moving")
-    ap.add_argument("--frames", type=int, default=300)
-    ap.add_argument("--clips", type=int, default=4)
-    ap.add_argument("--methods", nargs="+", default=list(METHODS))
-    args = ap.parse_args()
+def time_methods(names, clips) -> list[tuple[str, float, float]]:
+    """``(name, compile s, mean s per clip)`` of each method or variant (the shipped weights,
+    the variant's change applied) over ``clips``, a list of ``(ClipInputs, Model)``, one clip
+    per call: the first call's time is the compile time, then every clip is timed."""
     from jmocap.methods import get_method
 
-    arch = Archive(args.archive)
-    clips = []
-    for name in arch.names()[: args.clips]:
-        clip = arch.load(name)
-        idx = np.minimum(np.arange(args.frames), clip.num_frames - 1)  # cropped or edge-padded
-        inputs = ClipInputs.from_clip(clip)
-        inputs = inputs.replace(keypoints=inputs.keypoints[idx], mask=np.ones(args.frames, bool))
-        E0 = np.asarray(inputs.camera_track)[0]
-        clips.append((inputs.with_static_camera(E0), subject_model(clip)))
     rows = []
-    for name in args.methods:
+    for name in names:
         params, config = load_run_params(None, method=name)
         method = get_method(name)
         fn = jax.jit(lambda p, m, i, c, method=method: method.reconstruct(p, m, i, c))
@@ -60,6 +48,26 @@ def main() -> None:
             times.append(time.perf_counter() - t0)
         rows.append((name, compile_s, float(np.mean(times))))
         print(f"{name}: compile {compile_s:.0f} s, {rows[-1][2]:.2f} s per clip", flush=True)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--archive", default="data/heldout_moving")
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--clips", type=int, default=4)
+    ap.add_argument("--methods", nargs="+", default=list(METHODS))
+    args = ap.parse_args()
+    arch = Archive(args.archive)
+    clips = []
+    for name in arch.names()[: args.clips]:
+        clip = arch.load(name)
+        idx = np.minimum(np.arange(args.frames), clip.num_frames - 1)  # cropped or edge-padded
+        inputs = ClipInputs.from_clip(clip)
+        inputs = inputs.replace(keypoints=inputs.keypoints[idx], mask=np.ones(args.frames, bool))
+        E0 = np.asarray(inputs.camera_track)[0]
+        clips.append((inputs.with_static_camera(E0), subject_model(clip)))
+    rows = time_methods(args.methods, clips)
     ref = dict((r[0], r[2]) for r in rows).get("trajopt")
     print(f"\n{args.frames}-frame clips, batch 1, {len(clips)} clips\n\n| method | compile s | s / clip | x trajopt |\n|---|---:|---:|---:|")
     for name, c, s in rows:

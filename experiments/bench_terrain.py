@@ -13,16 +13,13 @@ clips. Scenes are padded to 8 boxes (``jmocap.inputs.scene_slots``).
 from __future__ import annotations
 
 import argparse
-import time
 
-import jax
 import numpy as np
 
+from bench_moving import time_methods
 from jmocap.data.archive import Archive
 from jmocap.inputs import ClipInputs
-from jmocap.methods import resolve
 from jmocap.pipeline import subject_model
-from jmocap.weights import load_run_params
 
 METHODS = ("trajopt_no_scene", "trajopt")
 
@@ -43,21 +40,7 @@ def main() -> None:
         inputs = inputs.replace(keypoints=inputs.keypoints[idx], mask=np.ones(args.frames, bool),
                                 camera_track=inputs.camera_track[idx])
         clips.append((inputs, subject_model(clip)))
-    rows = []
-    for name in METHODS:
-        params, config = load_run_params(None, method=name)
-        method = resolve(name)[0]
-        fn = jax.jit(lambda p, m, i, c, method=method: method.reconstruct(p, m, i, c))
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(params, clips[0][1], clips[0][0], config).q)
-        compile_s = time.perf_counter() - t0
-        times = []
-        for inputs, model in clips:
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(params, model, inputs, config).q)
-            times.append(time.perf_counter() - t0)
-        rows.append((name, compile_s, float(np.mean(times))))
-        print(f"{name}: compile {compile_s:.0f} s, {rows[-1][2]:.2f} s per clip", flush=True)
+    rows = time_methods(METHODS, clips)
     ref = rows[0][2]
     print(f"\n{args.frames}-frame clips, batch 1, {len(clips)} clips\n\n"
           f"| method | compile s | s / clip | x `{rows[0][0]}` |\n|---|---:|---:|---:|")

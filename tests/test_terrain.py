@@ -166,3 +166,36 @@ def test_trajopt_fits_the_feet_to_the_terrain():
     assert fit.min() > -0.01 and np.mean(fit.min(1) < -0.001) <= 0.03
     assert np.mean(flat.min(1) < -0.01) >= 0.03
     assert np.median(np.abs(fit[labelled])) < 0.015 < np.median(np.abs(flat[labelled]))
+
+
+def test_reconstruct_gives_clips_the_scene_of_the_session(tmp_path, xla_cache):
+    """``jmocap reconstruct --scene FILE``: a clip without a scene gets the file's (the result
+    keeps it, and the run's settings record it); a clip without extrinsics cannot place it and
+    fails naming the option; a bad scene file is a usage error (exit 2)."""
+    import json
+
+    from jmocap.cli import main
+    from jmocap.data.clip import save_clip
+    from jmocap.results import load_result
+    from jmocap.scene import scene_document
+
+    clip = S.generate_clip(3, 0, S.SynthConfig(frames=40, terrain=("step_up",)))
+    inp = tmp_path / "in"
+    inp.mkdir()
+    save_clip(inp / "with_camera.npz", clip.replace(scene=None, name="with_camera"))
+    save_clip(inp / "no_camera.npz", clip.replace(scene=None, extrinsics=None, name="no_camera"))
+    doc = tmp_path / "scene.json"
+    doc.write_text(json.dumps(scene_document(clip.scene)))
+    out = tmp_path / "out"
+    args = ["reconstruct", str(inp), str(out), "--method", "kinematic", "--quiet", "--cache-dir", xla_cache]
+    assert main([*args, "--scene", str(doc)]) == 1
+    entries = {e["name"]: e for e in map(json.loads, (out / "manifest.jsonl").read_text().splitlines())}
+    assert entries["with_camera"]["status"] == "ok"
+    assert entries["no_camera"]["status"] == "failed" and "--scene" in entries["no_camera"]["error"]
+    res = load_result(out / entries["with_camera"]["file"])
+    np.testing.assert_allclose(np.asarray(res["scene"].centers), np.asarray(clip.scene.centers), atol=1e-6)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["options"]["scene"] == scene_document(clip.scene)
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "jmocap-scene-1", "boxes": [{"center": [0, 0]}]}')
+    assert main([*args[:2], str(tmp_path / "out2"), *args[3:], "--scene", str(bad)]) == 2

@@ -123,6 +123,9 @@ class BatchOptions:
     # jmocap.methods.floor; the default camera where that is not usable) or "default"
     # (jmocap.camera.default_extrinsics); jmocap.pipeline.FloorEstimator
     camera: str = "estimate"
+    # the terrain of every clip that carries none (jmocap.scene.Scene, in the world frame of the
+    # clips' given extrinsics): a recording session's steps and platforms, measured once
+    scene: Any = None
 
 
 @dataclass
@@ -189,6 +192,10 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
         settings["mass_kg"] = options.mass_kg
     if options.camera != "estimate":
         settings["camera"] = options.camera
+    if options.scene is not None:
+        from jmocap.scene import scene_document
+
+        settings["scene"] = scene_document(options.scene)
     if options.camera not in ("estimate", "default"):
         raise ValueError(f"camera must be 'estimate' or 'default', got {options.camera!r}")
     write_bvh = _bvh_writer() if options.bvh else None
@@ -332,7 +339,8 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
             "SIGINT" if isinstance(interrupted, KeyboardInterrupt) else signal.Signals(interrupted.signum).name
         ),
         "devices": [str(d) for d in engine.devices],
-        "options": {**dataclasses.asdict(options), "image_size": settings["image_size"]},
+        "options": {**{f.name: getattr(options, f.name) for f in dataclasses.fields(options)},
+                    "image_size": settings["image_size"], "scene": settings.get("scene")},
         "params_sha256": identity["params_sha256"],
         "version": jmocap.__version__,
     }
@@ -429,6 +437,11 @@ def _read_ahead(sources: Sequence[Source], config, depth: int, options: BatchOpt
         t = time.perf_counter()
         try:
             clip, warnings = adapt_layout(resolve_subject(src.load(), options.height_m, options.mass_kg), config)
+            if options.scene is not None and clip.scene is None:
+                if clip.extrinsics is None:
+                    raise FormatError(f"{src.where}: the scene given (--scene) is in the world frame of the "
+                                      "camera's extrinsics, and the clip has none (give its camera, or no scene)")
+                clip = clip.replace(scene=options.scene)
             checked = check_clip(clip, config, src.where)  # an unusable clip fails here, before any estimate
             if floor is not None and clip.extrinsics is None:
                 clip = floor.resolve(clip)

@@ -82,34 +82,31 @@ def _frames_arg(text: str):
         raise argparse.ArgumentTypeError(f"expected N or MIN:MAX with 2 <= MIN <= MAX, got {text!r}") from None
 
 
+def _kind_list(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
+    """A comma-separated list of names, each one of ``known``, at least one."""
+    kinds = tuple(k.strip() for k in text.split(",") if k.strip())
+    bad = [k for k in kinds if k not in known]
+    if bad or not kinds:
+        raise argparse.ArgumentTypeError(f"unknown {what}(s) {bad}; known: {', '.join(known)}")
+    return kinds
+
+
 def _kinds_arg(text: str):
     from jmocap.data.synthetic import SEGMENTS
 
-    kinds = tuple(k.strip() for k in text.split(",") if k.strip())
-    bad = [k for k in kinds if k not in SEGMENTS]
-    if bad or not kinds:
-        raise argparse.ArgumentTypeError(f"unknown motion kind(s) {bad}; known: {', '.join(SEGMENTS)}")
-    return kinds
+    return _kind_list(text, tuple(SEGMENTS), "motion kind")
 
 
 def _camera_kinds_arg(text: str):
     from jmocap.data.synthetic import MOVING_KINDS
 
-    kinds = tuple(k.strip() for k in text.split(",") if k.strip())
-    bad = [k for k in kinds if k not in MOVING_KINDS + ("static",)]
-    if bad or not kinds:
-        raise argparse.ArgumentTypeError(f"unknown camera kind(s) {bad}; known: {', '.join(MOVING_KINDS)}, static")
-    return kinds
+    return _kind_list(text, MOVING_KINDS + ("static",), "camera kind")
 
 
 def _terrain_kinds_arg(text: str):
     from jmocap.data.synthetic.terrain import TERRAIN_KINDS
 
-    kinds = tuple(k.strip() for k in text.split(",") if k.strip())
-    bad = [k for k in kinds if k not in TERRAIN_KINDS + ("flat",)]
-    if bad or not kinds:
-        raise argparse.ArgumentTypeError(f"unknown terrain kind(s) {bad}; known: {', '.join(TERRAIN_KINDS)}, flat")
-    return kinds
+    return _kind_list(text, TERRAIN_KINDS + ("flat",), "terrain kind")
 
 
 @command("data", "synthetic data and clip archives")
@@ -610,6 +607,10 @@ def _reconstruct(p: argparse.ArgumentParser) -> None:
                         "(default): its tilt and height above the floor estimated from the person "
                         "(jmocap.methods.floor), else the default camera; 'default': a level camera 1 m "
                         "above the floor. The result's extrinsics_source says which")
+    p.add_argument("--scene", metavar="FILE",
+                   help="the terrain (a jmocap-scene-1 JSON file: boxes for steps, stairs, platforms; "
+                        "docs/formats.md 'Scenes') of every clip that carries none, in the world frame of "
+                        "the clips' given extrinsics: trajopt fits the feet to it and the result keeps it")
     p.add_argument("--bvh", action="store_true", help="also write <name>.bvh per clip")
     p.add_argument("--max-clips", type=int, metavar="N", help="process at most N clips this run")
     p.add_argument("--cache-dir", default=_xla_cache_dir(), metavar="DIR",
@@ -696,10 +697,17 @@ def run_reconstruct(args) -> int:
         limits = Limits.parse(getattr(args, "limit", None))
         if min(args.chunk, args.bucket, args.batch) < 1 or (args.max_clips is not None and args.max_clips < 0):
             raise ValueError("--chunk, --bucket and --batch must be >= 1, --max-clips >= 0")
+        scene = None
+        if getattr(args, "scene", None):
+            from pathlib import Path
+
+            from jmocap.scene import parse_scene
+
+            scene = parse_scene(Path(args.scene).read_text(), args.scene)
         options = BatchOptions(
             chunk=args.chunk, bucket=args.bucket, batch=args.batch, image_size=args.image_size,
             bvh=args.bvh, max_clips=args.max_clips, height_m=getattr(args, "height_m", "auto"),
-            mass_kg=getattr(args, "mass_kg", None), camera=getattr(args, "camera", "estimate"),
+            mass_kg=getattr(args, "mass_kg", None), camera=getattr(args, "camera", "estimate"), scene=scene,
         )
         summary = reconstruct_archive(
             args.input, args.output, params, config, options, method=method,
