@@ -147,10 +147,11 @@ def _data(p: argparse.ArgumentParser) -> None:
                    help="film each clip with a moving camera drawn from K1,K2 (default: handheld, pan, dolly, "
                         "orbit; 'static' may be one of them) and store its per-frame track (camera_track)")
     s.add_argument("--terrain", type=_terrain_kinds_arg, nargs="?",
-                   const=("step_up", "step_down", "stairs_up", "stairs_down", "block"), default=(), metavar="K1,K2",
+                   const=("step_up", "step_down", "stairs_up", "stairs_down", "block", "ramp_up", "ramp_down"),
+                   default=(), metavar="K1,K2",
                    help="walk on terrain drawn from K1,K2 (default: step_up, step_down, stairs_up, stairs_down, "
-                        "block; 'flat' may be one of them): boxes placed under the footsteps, simulated with "
-                        "--physics, stored as each clip's scene (docs/data.md)")
+                        "block, ramp_up, ramp_down; 'flat' may be one of them): boxes placed under the "
+                        "footsteps, simulated with --physics, stored as each clip's scene (docs/data.md)")
     s.add_argument("--no-corruption", action="store_true",
                    help="exact 2D projections, confidence 1 (with --imu: exact IMU signals)")
     s.add_argument("--imu", action="store_true",

@@ -32,7 +32,7 @@ from jmocap.data.synthetic.curves import (
     _Track,
 )
 from jmocap.data.synthetic.errors import GenerationError
-from jmocap.data.synthetic.plan import MOTION_KINDS, Plan
+from jmocap.data.synthetic.plan import MOTION_KINDS, Plan, Stance
 from jmocap.data.synthetic.rotations import (
     _continuous_quats,
     _mat2quat,
@@ -68,6 +68,17 @@ class Motion:
             self, q=self.q[a:b], planted=self.planted[a:b], flight=self.flight[a:b],
             kind=self.kind[a:b], com=self.com[a:b], zmp_ref=self.zmp_ref[a:b],
         )
+
+
+def on_surface(s: Stance, R: np.ndarray, p: np.ndarray):
+    """A foot pose (``R`` (..., 3, 3), ``p`` (..., 3)) planted on level ground at the stance's
+    ground frame, moved onto the stance's surface: raised by ``s.h`` and, on a ramp, turned by
+    ``s.tilt`` about the ground frame's origin at that height. ``p`` is changed in place."""
+    p[..., 2] += s.h
+    if s.tilt is None:
+        return R, p
+    pivot = np.array([s.G[0], s.G[1], s.h])
+    return s.tilt @ R, pivot + (p - pivot) @ s.tilt.T
 
 
 def _flights(plan: Plan, t_end: float):
@@ -229,7 +240,7 @@ def _foot_targets(plan: Plan, t, st_idx, fb, lift):
                 continue
             ph = phi_of(f, s, t[m])
             R, p, toe = ch.stance_pose(f, s.G, ph)
-            p[..., 2] += s.h
+            R, p = on_surface(s, R, p)
             R_t[f, m], p_t[f, m], toe_t[f, m] = R, p, toe
             planted[m, 2 * f] = ph <= 0
             planted[m, 2 * f + 1] = ph >= 0
@@ -250,8 +261,8 @@ def _foot_targets(plan: Plan, t, st_idx, fb, lift):
                 continue
             R0, p0, k0 = ch.stance_pose(f, a.G, phi_of(f, a, np.array(a.t_off)))
             R1, p1, k1 = ch.stance_pose(f, b.G, phi_of(f, b, np.array(b.t_on)))
-            p0[2] += a.h
-            p1[2] += b.h
+            R0, p0 = on_surface(a, R0, p0)
+            R1, p1 = on_surface(b, R1, p1)
             s = (t[m] - a.t_off) / (b.t_on - a.t_off)
             h = _smoothstep(s)
             p = p0 + h[:, None] * (p1 - p0)
@@ -433,8 +444,8 @@ def _rel_swings(plan, ch, t, pel, yaw, swings, st_idx, R_t, p_t, toe_t, lift):
 
         R0, p0, k0 = ch.stance_pose(f, a.G, a.phi_at(a.t_off))
         R1, p1, k1 = ch.stance_pose(f, b.G, b.phi_at(b.t_on))
-        p0[2] += a.h
-        p1[2] += b.h
+        R0, p0 = on_surface(a, R0, p0)
+        R1, p1 = on_surface(b, R1, p1)
         HR0, Hp0 = H(a.t_off)
         HR1, Hp1 = H(b.t_on)
         rel0 = (HR0[0].T @ R0, HR0[0].T @ (p0 - Hp0[0]), k0)

@@ -36,8 +36,9 @@ from jmocap.data.synthetic.ground_truth import velocities
 from jmocap.model import scaled_spec
 from jmocap.scene import Scene, add_to_spec, boxes, height_above, surface_height
 
-#: a foot contact whose normal's z is below this (8 degrees off the vertical) touches a terrain
-#: box's side or edge (:func:`simulate_tracking`)
+#: a foot contact whose normal is more than 8 degrees off its ground geom's top-face normal (the
+#: box's z axis: vertical for steps, tilted for a ramp) touches a terrain box's side or edge
+#: (:func:`simulate_tracking`)
 EDGE_NORMAL_Z = math.cos(math.radians(8.0))
 
 
@@ -452,10 +453,10 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     ``scene``: the terrain (:mod:`jmocap.scene`), simulated as static boxes beside the floor
     (:func:`terrain_model`); heights (the labels' "on the floor", the split's raised sites, the
     fall test) are then measured above the terrain under each point. A foot that touches a box
-    anywhere but its top (a side or an edge: a contact normal more than 8 degrees off the
-    vertical) is simulated as MuJoCo has it (a scuffed step edge); its frames are counted
-    (``stats["edge_contact_frames"]``): only there may a ground-truth force leave the floor's
-    friction pyramid.
+    anywhere but its top (a side or an edge: a contact normal more than 8 degrees off the top
+    face's) is simulated as MuJoCo has it (a scuffed step edge); its frames are counted
+    (``stats["edge_contact_frames"]``): only there, and on a ramp (whose pyramid is tilted with
+    its top), may a ground-truth force leave the floor's friction pyramid.
     """
     T = len(q_ref)
     if not 0 <= lead < T:
@@ -518,8 +519,13 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
             a_des = qddr + kp * e + kd * (qdr - d.qvel)
             con, other = _floor_contacts(d, floor, geom_foot, geom_body)
             nonfoot += other
-            if scene is not None and len(con.index) and np.min(d.contact.frame[con.index, 2]) < EDGE_NORMAL_Z:
-                edge[k] = True
+            if scene is not None and len(con.index):
+                # a contact off its ground geom's top face (its z axis; the floor's normal is z)
+                g1 = d.contact.geom1[con.index]
+                ground = np.where(floor[g1], g1, d.contact.geom2[con.index])
+                top = d.geom_xmat[ground].reshape(-1, 3, 3)[:, :, 2]
+                if np.min(np.abs(np.sum(d.contact.frame[con.index, :3] * top, -1))) < EDGE_NORMAL_Z:
+                    edge[k] = True
             A, Jc = _contact_jacobians(mj, d, con, E, jp)
             sp = d.site_xpos[sites].copy()
             sh = height_above(scene, sp)

@@ -28,7 +28,7 @@ the extended generator's everyday motions (:mod:`~.repertoire`)."""
 @dataclass
 class Stance:
     """One contact of one foot with the floor, on ground frame ``G = (x, y, yaw)`` at height ``h``
-    (0: the floor; the top of a box of the plan's terrain otherwise).
+    (0: the floor; the top of a box of the plan's terrain otherwise), tilted by ``tilt`` on a ramp.
 
     ``phi`` knots (t, angle) rock the foot during the stance (< 0 about the heel contact
     point, > 0 about the ball of the foot); ``alpha`` knots (t, a) place the foot's share of the
@@ -47,6 +47,9 @@ class Stance:
     load: bool = True
     swing: dict | None = None
     h: float = 0.0  # height of the surface the footstep stands on (terrain, :mod:`~.terrain`)
+    # (3, 3) the surface's rotation from level about the ground frame's origin at height h (a
+    # ramp), or None (level)
+    tilt: np.ndarray | None = None
 
     def phi_at(self, t):
         return _Track(self.phi)(t) if self.phi else np.zeros(np.shape(t))

@@ -29,10 +29,11 @@ import math
 import numpy as np
 
 from jmocap.data.synthetic.errors import GenerationError
+from jmocap.data.synthetic.motion import on_surface
 from jmocap.data.synthetic.plan import Plan, Stance
 from jmocap.scene import Scene, surface_height
 
-TERRAIN_KINDS = ("step_up", "step_down", "stairs_up", "stairs_down", "block")
+TERRAIN_KINDS = ("step_up", "step_down", "stairs_up", "stairs_down", "block", "ramp_up", "ramp_down")
 """The terrain kinds :func:`place_terrain` builds (``jmocap data synth --terrain``)."""
 TERRAIN_WALK_KINDS = ("walk",)
 """The motion kinds of a terrain clip unless its configuration names others: walking, between
@@ -42,6 +43,9 @@ standing (stepping, squatting or jumping onto a box is possible but not drawn by
 #: nominal height; scaled by the subject's ``scale``)
 PLATFORM_M = (0.08, 0.25)
 BLOCK_M = (0.08, 0.20)
+#: ramp slopes (degrees) and the thickness of a ramp's box (m)
+RAMP_DEG = (5.0, 12.0)
+RAMP_THICKNESS_M = 0.3
 RISE_M = (0.10, 0.18)
 STAIR_STEPS = (2, 4)
 #: a footprint stays this far inside its box's edges, and a footstep of a lower level this far
@@ -75,6 +79,10 @@ def _levels(kind: str, n: int, rng: np.random.Generator) -> tuple[np.ndarray, fl
         k = int(rng.integers(2, max(3, n - steps)))
         lev = np.clip(i - k + 1, 0, steps)
         rise = float(rng.uniform(*RISE_M))
+    elif kind in ("ramp_up", "ramp_down"):
+        k = int(rng.integers(2, max(3, n - 2)))
+        lev = (i >= k).astype(int)
+        rise = 0.0  # the slope is drawn by _ramp
     elif kind == "block":
         m = int(rng.integers(1, 4))
         k = int(rng.integers(2, max(3, n - m)))
@@ -98,6 +106,8 @@ def place_terrain(plan: Plan, rng: np.random.Generator, kind: str) -> Scene:
     lev, rise = _levels(kind, n, rng)
     if lev.max() == 0 or lev.min() == lev.max():
         raise GenerationError(f"terrain {kind!r}: every footstep on one level")
+    if kind.startswith("ramp"):
+        return _ramp(plan, rng, kind, stances, lev)
     rise *= plan.ch.scale
     prints = [_footprint(plan, s) for s in stances]
     centers, halves, rots = [], [], []
@@ -138,6 +148,61 @@ def place_terrain(plan: Plan, rng: np.random.Generator, kind: str) -> Scene:
         s.h = float(lv * rise)
         under = surface_height(scene, pts)
         if np.max(np.abs(under - s.h)) > 1e-9:  # a footprint across an edge (cannot happen by construction)
+            raise GenerationError(f"terrain {kind!r}: a footprint is not on one surface")
+    plan.scene = scene
+    plan.swing_scene = swing_clearance_scene(scene)
+    return scene
+
+
+def _ramp(plan: Plan, rng: np.random.Generator, kind: str, stances: list[Stance], lev: np.ndarray) -> Scene:
+    """A ramp under the footsteps of level 1: a box pitched by 5-12 degrees whose top rises away
+    from the level-0 footsteps, from the floor at its low edge (a few centimetres before the
+    first footstep on it) to beyond the last. Each footstep on it stands at the slope's height
+    under its ground frame's origin, tilted with it (``Stance.tilt``)."""
+    n = len(stances)
+    inside, outside = np.nonzero(lev >= 1)[0], np.nonzero(lev < 1)[0]
+    edge = [i for i in inside if (i > 0 and lev[i - 1] < 1) or (i + 1 < n and lev[i + 1] < 1)]
+    yaw = math.atan2(sum(math.sin(stances[i].G[2]) for i in edge), sum(math.cos(stances[i].G[2]) for i in edge))
+    R2 = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    prints = [_footprint(plan, s) for s in stances]
+    uv_in = np.concatenate([prints[i] for i in inside]) @ R2
+    uv_out = np.concatenate([prints[i] for i in outside]) @ R2
+    lo, hi = uv_in.min(0), uv_in.max(0)
+    d = 1.0 if np.any(uv_out[:, 0] < lo[0]) else -1.0  # the slope rises away from the level footsteps
+    if np.any(uv_out[:, 0] < lo[0]) and np.any(uv_out[:, 0] > hi[0]):
+        raise GenerationError(f"terrain {kind!r}: level footsteps on both sides of the ramp")
+    alpha = math.radians(float(rng.uniform(*RAMP_DEG)))
+    tight = float(rng.uniform(INNER_MARGIN_M, 0.10))
+    far = float(rng.uniform(0.3, 1.0)) * plan.ch.scale
+    u0 = lo[0] - tight if d > 0 else hi[0] + tight  # the low edge, on the floor
+    u1 = hi[0] + far if d > 0 else lo[0] - far
+    side = rng.uniform(0.15, 0.6, 2) * plan.ch.scale
+    v_lo, v_hi = lo[1] - side[0], hi[1] + side[1]
+    a, b = min(u0, u1), max(u0, u1)
+    hit = np.all((uv_out > [a - OUTER_MARGIN_M, v_lo - OUTER_MARGIN_M]) & (uv_out < [b + OUTER_MARGIN_M, v_hi + OUTER_MARGIN_M]), 1)
+    if hit.any():
+        raise GenerationError(f"terrain {kind!r}: the ramp would cover a level footstep")
+    # the box: its top face the plane z = d (u - u0) tan(alpha) over [a, b] x [v_lo, v_hi]
+    c, s_, t = math.cos(yaw), math.sin(yaw), -d * alpha
+    Rz = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    Ry = np.array([[math.cos(t), 0.0, math.sin(t)], [0.0, 1.0, 0.0], [-math.sin(t), 0.0, math.cos(t)]])
+    R = Rz @ Ry
+    u_mid, v_mid = (a + b) / 2, (v_lo + v_hi) / 2
+    top_mid = np.array([*(R2 @ [u_mid, v_mid]), d * (u_mid - u0) * math.tan(alpha)])
+    half = np.array([(b - a) / 2 / math.cos(alpha), (v_hi - v_lo) / 2, RAMP_THICKNESS_M / 2])
+    scene = Scene(np.array([top_mid - R[:, 2] * half[2]]), np.array([half]), np.array([R]))
+    tilt = Rz @ Ry @ Rz.T  # about the horizontal axis across the heading
+    ch = plan.ch
+    for i, s in enumerate(stances):
+        if lev[i] >= 1:
+            u = float(np.asarray(s.G[:2]) @ R2[:, 0])
+            s.h, s.tilt = d * (u - u0) * math.tan(alpha), tilt
+        Rf, pf, toe = ch.stance_pose(s.foot, s.G, np.array(0.0))
+        Rf, pf = on_surface(s, Rf, pf.copy())
+        sole = ch.foot_points(s.foot, Rf, pf, toe)
+        n_up = (tilt if s.tilt is not None else np.eye(3))[:, 2]
+        plane = s.h - (n_up[0] * (sole[:, 0] - s.G[0]) + n_up[1] * (sole[:, 1] - s.G[1])) / n_up[2]
+        if np.max(np.abs(surface_height(scene, sole[:, :2]) - plane)) > 1e-9:
             raise GenerationError(f"terrain {kind!r}: a footprint is not on one surface")
     plan.scene = scene
     plan.swing_scene = swing_clearance_scene(scene)
