@@ -238,11 +238,16 @@ class Problem:
     scene: Scene | None = None  # the terrain (jmocap.scene); None or no boxes: the floor z = 0
 
 
+def is_flat(scene: Scene | None) -> bool:
+    """Whether a scene is the floor alone (None, or no boxes): static, from its shape."""
+    return scene is None or scene.centers.shape[-2] == 0
+
+
 def surface_heights(scene: Scene | None, points: Array) -> Array:
     """Heights (...,) of points (..., 3) above the terrain: their signed distance to the scene
     (:func:`jmocap.scene.sdf`: the floor and the boxes), ``z`` without a scene (or without boxes,
     static). Every floor and contact term of the method measures heights with it."""
-    if scene is None or scene.centers.shape[-2] == 0:
+    if is_flat(scene):
         return points[..., 2]
     return sdf(scene, points)
 
@@ -250,7 +255,7 @@ def surface_heights(scene: Scene | None, points: Array) -> Array:
 def surface_heights_and_normals(scene: Scene | None, points: Array) -> tuple[Array, Array]:
     """:func:`surface_heights` of points (P, 3) and their gradients (P, 3) (the unit normal of
     the nearest surface; ``z`` without boxes)."""
-    if scene is None or scene.centers.shape[-2] == 0:
+    if is_flat(scene):
         return points[..., 2], jnp.zeros_like(points).at[..., 2].set(1.0)
     return jax.vmap(jax.value_and_grad(lambda p: sdf(scene, p)))(points)
 
@@ -439,7 +444,7 @@ def kinematic_terms(model: Model, q: Array, geo: FrameGeometry, prob: Problem, c
 
     # contacts: a labelled site's pair of sole points on the floor (the terrain) and still
     sole = geo.sole.reshape(q.shape[0], 4, 2, 3)
-    if prob.scene is None or prob.scene.centers.shape[-2] == 0:  # the floor: z (static)
+    if is_flat(prob.scene):  # the floor: z
         sole_h, pair_h = geo.sole[..., 2], sole[..., 2]
     else:
         sole_h = surface_heights(prob.scene, geo.sole)  # (T, 8)
@@ -722,7 +727,7 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
     jk, _ = P.point_jacobian(model, kin, p3, np.asarray(model.topo.site_body)[np.asarray(ids)])  # (J, 3, nv)
     pts, bodies, _ = S.sole_points(model, kin)
     js, _ = P.point_jacobian(model, kin, pts, bodies)
-    if scene is None or scene.centers.shape[-2] == 0:
+    if is_flat(scene):
         sole_h, j_h = pts[:, 2], js[:, 2, :]
     else:
         sole_h, normal = surface_heights_and_normals(scene, pts)

@@ -116,6 +116,9 @@ class PhysicsConfig:
     contact_timeconst: float = 0.008  # MuJoCo solref time constant of the contacts (s)
     fall_height: float = 0.5  # fraction of the standing pelvis height
     fall_tilt_deg: float = 60.0
+    # terrain: a simulation whose feet touch a box's side or edge on more than this share of the
+    # frames (a foot caught on a step) fails, and the clip is drawn again
+    max_edge_contact_share: float = 0.05
     settle_s: float = 0.5  # lead-in simulated before the clip's first frame and dropped
     # "qp": the QP tracker with the rescue residual (simulate_tracking); "sampling": sampling-based
     # control, no root force ever (jmocap.data.synthetic.sampling.simulate_sampling)
@@ -456,7 +459,8 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     anywhere but its top (a side or an edge: a contact normal more than 8 degrees off the top
     face's) is simulated as MuJoCo has it (a scuffed step edge); its frames are counted
     (``stats["edge_contact_frames"]``): only there, and on a ramp (whose pyramid is tilted with
-    its top), may a ground-truth force leave the floor's friction pyramid.
+    its top), may a ground-truth force leave the floor's friction pyramid. More than
+    ``cfg.max_edge_contact_share`` of the frames (a foot caught on a step) fails the simulation.
     """
     T = len(q_ref)
     if not 0 <= lead < T:
@@ -545,6 +549,9 @@ def simulate_tracking(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
                                scene)
     if scene is not None:
         out["stats"]["edge_contact_frames"] = int(edge[lead:].sum())
+        if edge[lead:].mean() > cfg.max_edge_contact_share:
+            raise GenerationError(f"a foot caught on the terrain's edges in {int(edge[lead:].sum())} of "
+                                  f"{T - lead} frames")
     return out
 
 

@@ -7,7 +7,9 @@ footstep on the surface of its level:
 * ``step_up`` / ``step_down``: a platform the walk steps onto (or starts on and steps off);
 * ``stairs_up`` / ``stairs_down``: a flight of 2-4 steps, one footstep per tread, then the
   landing (one box per step, each reaching to the end of the flight: a union of nested boxes);
-* ``block``: a low box the walk steps onto and off again (one to three footsteps on it).
+* ``block``: a low box the walk steps onto and off again (one to three footsteps on it);
+* ``ramp_up`` / ``ramp_down``: a box pitched by 5-12 degrees whose top rises from the floor,
+  walked up (or down to the floor).
 
 Box ``j`` covers exactly the footsteps of level ``>= j`` and has its top at ``j`` rises; it is
 turned to the feet's heading at its edge and fitted around those footprints (its edges a few
@@ -17,9 +19,9 @@ edge) raises :class:`~.errors.GenerationError` and the clip is drawn again. Ever
 stands on exactly one surface, at the height its :class:`~.plan.Stance` carries (``h``): the
 realisation (:mod:`~.motion`) raises feet, pelvis and swings by it, and measures every
 clearance against :func:`jmocap.scene.surface_height`. Boxes reach 5 cm below the floor so that
-the scene's signed distance is exact inside them (:mod:`jmocap.scene`). Ramps (pitched boxes)
-are not generated: a stance on a slope needs a pitched foot, which the plan's stances (flat
-or rocked about heel and ball on a horizontal ground frame) cannot express.
+the scene's signed distance is exact inside them (:mod:`jmocap.scene`). A footstep on a ramp
+also carries the slope's rotation (``Stance.tilt``): its level foot pose, rocking included, is
+turned onto the slope about its ground frame's origin (:func:`~.motion.on_surface`).
 """
 
 from __future__ import annotations
