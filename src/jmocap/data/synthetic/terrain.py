@@ -97,6 +97,21 @@ def _levels(kind: str, n: int, rng: np.random.Generator) -> tuple[np.ndarray, fl
     return lev, rise
 
 
+def _box_frame(stances: list[Stance], lev: np.ndarray, j: int, prints: list[np.ndarray]):
+    """The frame of the box that carries the footsteps of level ``>= j``: its heading (the feet's
+    mean facing at its edge(s), the footsteps next to a lower one) as a 2D rotation ``R2``, the
+    footprints inside and outside it in that frame (``uv = xy @ R2``) and the inside ones'
+    bounds ``lo``, ``hi``."""
+    n = len(stances)
+    inside, outside = np.nonzero(lev >= j)[0], np.nonzero(lev < j)[0]
+    edge = [i for i in inside if (i > 0 and lev[i - 1] < j) or (i + 1 < n and lev[i + 1] < j)]
+    yaw = math.atan2(sum(math.sin(stances[i].G[2]) for i in edge), sum(math.cos(stances[i].G[2]) for i in edge))
+    R2 = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    uv_in = np.concatenate([prints[i] for i in inside]) @ R2
+    uv_out = np.concatenate([prints[i] for i in outside]) @ R2
+    return R2, uv_in, uv_out, uv_in.min(0), uv_in.max(0)
+
+
 def place_terrain(plan: Plan, rng: np.random.Generator, kind: str) -> Scene:
     """Boxes under the plan's footsteps for a terrain ``kind`` (:data:`TERRAIN_KINDS`); sets each
     stance's ``h`` and returns the scene. Raises :class:`GenerationError` when the footsteps
@@ -108,21 +123,13 @@ def place_terrain(plan: Plan, rng: np.random.Generator, kind: str) -> Scene:
     lev, rise = _levels(kind, n, rng)
     if lev.max() == 0 or lev.min() == lev.max():
         raise GenerationError(f"terrain {kind!r}: every footstep on one level")
-    if kind.startswith("ramp"):
-        return _ramp(plan, rng, kind, stances, lev)
-    rise *= plan.ch.scale
     prints = [_footprint(plan, s) for s in stances]
+    if kind.startswith("ramp"):
+        return _ramp(plan, rng, kind, stances, lev, prints)
+    rise *= plan.ch.scale
     centers, halves, rots = [], [], []
     for j in range(1, int(lev.max()) + 1):
-        inside = np.nonzero(lev >= j)[0]
-        outside = np.nonzero(lev < j)[0]
-        # the box's heading: the feet's mean facing at its edge(s) (the footsteps next to a lower one)
-        edge = [i for i in inside if (i > 0 and lev[i - 1] < j) or (i + 1 < n and lev[i + 1] < j)]
-        yaw = math.atan2(sum(math.sin(stances[i].G[2]) for i in edge), sum(math.cos(stances[i].G[2]) for i in edge))
-        R2 = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-        uv_in = np.concatenate([prints[i] for i in inside]) @ R2
-        uv_out = np.concatenate([prints[i] for i in outside]) @ R2
-        lo, hi = uv_in.min(0), uv_in.max(0)
+        R2, uv_in, uv_out, lo, hi = _box_frame(stances, lev, j, prints)
         lo_m, hi_m = lo.copy(), hi.copy()
         # along the heading: tight where a lower footstep lies beyond the edge, long elsewhere
         far = rng.uniform(0.3, 1.0, 2) * plan.ch.scale
@@ -156,20 +163,13 @@ def place_terrain(plan: Plan, rng: np.random.Generator, kind: str) -> Scene:
     return scene
 
 
-def _ramp(plan: Plan, rng: np.random.Generator, kind: str, stances: list[Stance], lev: np.ndarray) -> Scene:
+def _ramp(plan: Plan, rng: np.random.Generator, kind: str, stances: list[Stance], lev: np.ndarray,
+          prints: list[np.ndarray]) -> Scene:
     """A ramp under the footsteps of level 1: a box pitched by 5-12 degrees whose top rises away
     from the level-0 footsteps, from the floor at its low edge (a few centimetres before the
     first footstep on it) to beyond the last. Each footstep on it stands at the slope's height
     under its ground frame's origin, tilted with it (``Stance.tilt``)."""
-    n = len(stances)
-    inside, outside = np.nonzero(lev >= 1)[0], np.nonzero(lev < 1)[0]
-    edge = [i for i in inside if (i > 0 and lev[i - 1] < 1) or (i + 1 < n and lev[i + 1] < 1)]
-    yaw = math.atan2(sum(math.sin(stances[i].G[2]) for i in edge), sum(math.cos(stances[i].G[2]) for i in edge))
-    R2 = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-    prints = [_footprint(plan, s) for s in stances]
-    uv_in = np.concatenate([prints[i] for i in inside]) @ R2
-    uv_out = np.concatenate([prints[i] for i in outside]) @ R2
-    lo, hi = uv_in.min(0), uv_in.max(0)
+    R2, uv_in, uv_out, lo, hi = _box_frame(stances, lev, 1, prints)
     d = 1.0 if np.any(uv_out[:, 0] < lo[0]) else -1.0  # the slope rises away from the level footsteps
     if np.any(uv_out[:, 0] < lo[0]) and np.any(uv_out[:, 0] > hi[0]):
         raise GenerationError(f"terrain {kind!r}: level footsteps on both sides of the ramp")
@@ -185,7 +185,7 @@ def _ramp(plan: Plan, rng: np.random.Generator, kind: str, stances: list[Stance]
     if hit.any():
         raise GenerationError(f"terrain {kind!r}: the ramp would cover a level footstep")
     # the box: its top face the plane z = d (u - u0) tan(alpha) over [a, b] x [v_lo, v_hi]
-    c, s_, t = math.cos(yaw), math.sin(yaw), -d * alpha
+    c, s_, t = R2[0, 0], R2[1, 0], -d * alpha
     Rz = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
     Ry = np.array([[math.cos(t), 0.0, math.sin(t)], [0.0, 1.0, 0.0], [-math.sin(t), 0.0, math.cos(t)]])
     R = Rz @ Ry
