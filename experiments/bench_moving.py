@@ -27,6 +27,21 @@ from jmocap.weights import load_run_params
 METHODS = ("trajopt", "dnd", "dnd_trajopt_estimated", "dnd_trajopt")
 
 
+def bench_clips(archive: str, n: int, frames: int):
+    """``(ClipInputs, Model)`` of the first ``n`` clips of an archive, cropped or edge-padded to
+    ``frames`` frames (keypoints and camera track), each with its subject's character."""
+    arch = Archive(archive)
+    out = []
+    for name in arch.names()[:n]:
+        clip = arch.load(name)
+        idx = np.minimum(np.arange(frames), clip.num_frames - 1)
+        inputs = ClipInputs.from_clip(clip)
+        inputs = inputs.replace(keypoints=inputs.keypoints[idx], mask=np.ones(frames, bool),
+                                camera_track=inputs.camera_track[idx])
+        out.append((inputs, subject_model(clip)))
+    return out
+
+
 def time_methods(names, clips) -> list[tuple[str, float, float]]:
     """``(name, compile s, mean s per clip)`` of each method or variant (the shipped weights,
     the variant's change applied) over ``clips``, a list of ``(ClipInputs, Model)``, one clip
@@ -58,15 +73,8 @@ def main() -> None:
     ap.add_argument("--clips", type=int, default=4)
     ap.add_argument("--methods", nargs="+", default=list(METHODS))
     args = ap.parse_args()
-    arch = Archive(args.archive)
-    clips = []
-    for name in arch.names()[: args.clips]:
-        clip = arch.load(name)
-        idx = np.minimum(np.arange(args.frames), clip.num_frames - 1)  # cropped or edge-padded
-        inputs = ClipInputs.from_clip(clip)
-        inputs = inputs.replace(keypoints=inputs.keypoints[idx], mask=np.ones(args.frames, bool))
-        E0 = np.asarray(inputs.camera_track)[0]
-        clips.append((inputs.with_static_camera(E0), subject_model(clip)))
+    clips = [(inputs.with_static_camera(np.asarray(inputs.camera_track)[0]), model)  # the first camera only
+             for inputs, model in bench_clips(args.archive, args.clips, args.frames)]
     rows = time_methods(args.methods, clips)
     ref = dict((r[0], r[2]) for r in rows).get("trajopt")
     print(f"\n{args.frames}-frame clips, batch 1, {len(clips)} clips\n\n| method | compile s | s / clip | x trajopt |\n|---|---:|---:|---:|")

@@ -14,12 +14,7 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
-
-from bench_moving import time_methods
-from jmocap.data.archive import Archive
-from jmocap.inputs import ClipInputs
-from jmocap.pipeline import subject_model
+from bench_moving import bench_clips, time_methods
 
 METHODS = ("trajopt_no_scene", "trajopt")
 
@@ -30,16 +25,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--clips", type=int, default=4)
     args = ap.parse_args()
-
-    arch = Archive(args.archive)
-    clips = []
-    for name in arch.names()[: args.clips]:
-        clip = arch.load(name)
-        idx = np.minimum(np.arange(args.frames), clip.num_frames - 1)  # cropped or edge-padded
-        inputs = ClipInputs.from_clip(clip)
-        inputs = inputs.replace(keypoints=inputs.keypoints[idx], mask=np.ones(args.frames, bool),
-                                camera_track=inputs.camera_track[idx])
-        clips.append((inputs, subject_model(clip)))
+    clips = bench_clips(args.archive, args.clips, args.frames)
     rows = time_methods(METHODS, clips)
     ref = rows[0][2]
     print(f"\n{args.frames}-frame clips, batch 1, {len(clips)} clips\n\n"
