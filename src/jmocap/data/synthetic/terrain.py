@@ -153,10 +153,24 @@ def place_terrain(plan: Plan, rng: np.random.Generator, kind: str) -> Scene:
         halves.append([(hi_m[0] - lo_m[0]) / 2, (hi_m[1] - lo_m[1]) / 2, (top + BELOW_FLOOR_M) / 2])
         rots.append([[R2[0, 0], R2[0, 1], 0.0], [R2[1, 0], R2[1, 1], 0.0], [0.0, 0.0, 1.0]])
     scene = Scene(np.array(centers), np.array(halves), np.array(rots))
-    for s, lv, pts in zip(stances, lev, prints, strict=True):
+    for s, lv in zip(stances, lev, strict=True):
         s.h = float(lv * rise)
-        under = surface_height(scene, pts)
-        if np.max(np.abs(under - s.h)) > 1e-9:  # a footprint across an edge (cannot happen by construction)
+    return _attach(plan, scene, stances, kind)
+
+
+def _attach(plan: Plan, scene: Scene, stances: list[Stance], kind: str) -> Scene:
+    """Check that every footstep's sole lies on its surface (the plane through its ground frame's
+    origin at height ``h``, tilted by ``tilt`` on a ramp) as the scene has it there, and give the
+    plan the scene and its swing-clearance scene. A footprint across an edge raises (it cannot
+    happen by construction)."""
+    ch = plan.ch
+    for s in stances:
+        Rf, pf, toe = ch.stance_pose(s.foot, s.G, np.array(0.0))
+        Rf, pf = on_surface(s, Rf, pf.copy())
+        sole = ch.foot_points(s.foot, Rf, pf, toe)
+        n_up = (s.tilt if s.tilt is not None else np.eye(3))[:, 2]
+        plane = s.h - (n_up[0] * (sole[:, 0] - s.G[0]) + n_up[1] * (sole[:, 1] - s.G[1])) / n_up[2]
+        if np.max(np.abs(surface_height(scene, sole[:, :2]) - plane)) > 1e-9:
             raise GenerationError(f"terrain {kind!r}: a footprint is not on one surface")
     plan.scene = scene
     plan.swing_scene = swing_clearance_scene(scene)
@@ -194,21 +208,11 @@ def _ramp(plan: Plan, rng: np.random.Generator, kind: str, stances: list[Stance]
     half = np.array([(b - a) / 2 / math.cos(alpha), (v_hi - v_lo) / 2, RAMP_THICKNESS_M / 2])
     scene = Scene(np.array([top_mid - R[:, 2] * half[2]]), np.array([half]), np.array([R]))
     tilt = Rz @ Ry @ Rz.T  # about the horizontal axis across the heading
-    ch = plan.ch
     for i, s in enumerate(stances):
         if lev[i] >= 1:
             u = float(np.asarray(s.G[:2]) @ R2[:, 0])
             s.h, s.tilt = d * (u - u0) * math.tan(alpha), tilt
-        Rf, pf, toe = ch.stance_pose(s.foot, s.G, np.array(0.0))
-        Rf, pf = on_surface(s, Rf, pf.copy())
-        sole = ch.foot_points(s.foot, Rf, pf, toe)
-        n_up = (tilt if s.tilt is not None else np.eye(3))[:, 2]
-        plane = s.h - (n_up[0] * (sole[:, 0] - s.G[0]) + n_up[1] * (sole[:, 1] - s.G[1])) / n_up[2]
-        if np.max(np.abs(surface_height(scene, sole[:, :2]) - plane)) > 1e-9:
-            raise GenerationError(f"terrain {kind!r}: a footprint is not on one surface")
-    plan.scene = scene
-    plan.swing_scene = swing_clearance_scene(scene)
-    return scene
+    return _attach(plan, scene, stances, kind)
 
 
 def swing_clearance_scene(scene: Scene, margin: float = SWING_CLEARANCE_M) -> Scene:
