@@ -30,6 +30,9 @@ FORBIDDEN = {
     # scenes (terrain): geometry under the data layer's clips and the metrics
     "scene": ("methods", "pipeline", "batch", "results", "evaluate", "metrics", "train", "cli", "demo",
               "weights", "nets", "viz", "export", "physics", "model"),
+    # MuJoCo C simulation of a character (the synthetic ground truth and ``mocon`` share it)
+    "simulator": ("methods", "pipeline", "batch", "results", "evaluate", "metrics", "train", "cli", "demo",
+                  "weights", "nets", "viz", "export", "data", "inputs"),
     "weights": ("pipeline", "batch", "evaluate", "train", "cli", "demo"),
     "batch": ("evaluate", "train", "cli", "demo"),
     "evaluate": ("batch", "train", "cli", "demo"),

@@ -19,7 +19,6 @@ describes the whole design.
 
 from __future__ import annotations
 
-import copy
 import functools
 import math
 from dataclasses import dataclass, field
@@ -35,6 +34,19 @@ from jmocap.data.synthetic.errors import GenerationError
 from jmocap.data.synthetic.ground_truth import velocities
 from jmocap.model import scaled_spec
 from jmocap.scene import Scene, add_to_spec, boxes, height_above, surface_height
+from jmocap.simulator import FootContacts as _Contacts
+from jmocap.simulator import contact_forces as _contact_forces  # noqa: F401  (re-exported)
+from jmocap.simulator import (  # noqa: F401  (re-exported: the synthetic physics API)
+    floor_split,
+    foot_geom_map,
+    lever_split,
+    record_foot_forces,
+    simulation_model,
+    substep_records,
+    tent_average,
+    tent_weights,
+)
+from jmocap.simulator import foot_contacts as _floor_contacts  # noqa: F401
 
 #: a foot contact whose normal is more than 8 degrees off its ground geom's top-face normal (the
 #: box's z axis: vertical for steps, tilted for a ramp) touches a terrain box's side or edge
@@ -157,23 +169,6 @@ def terrain_model(ch: Character, scene: Scene | None) -> mujoco.MjModel:
     return mj
 
 
-def simulation_model(mj: mujoco.MjModel, dt: float, contact_timeconst: float) -> mujoco.MjModel:
-    """A copy of ``mj`` set up for the tracking simulation: timestep ``dt``, ``implicitfast``,
-    jmocap's one friction model (``FRICTION_MU``, pyramidal cone) on every geom, no passive
-    damping, contact time constant ``contact_timeconst`` (stiffer than MuJoCo's 0.02 s)."""
-    if FRICTION_CONE != "pyramidal":
-        raise ValueError(f"unsupported friction cone {FRICTION_CONE!r}")
-    mj = copy.deepcopy(mj)
-    mj.opt.timestep = dt
-    mj.opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
-    mj.opt.cone = mujoco.mjtCone.mjCONE_PYRAMIDAL
-    mj.geom_friction[:, 0] = FRICTION_MU
-    mj.dof_damping[:] = 0.0
-    mj.geom_solref[:, 0] = max(contact_timeconst, 2 * dt)
-    mj.geom_solref[:, 1] = 1.0
-    return mj
-
-
 def reference_derivatives(mj: mujoco.MjModel, q_ref: np.ndarray, fps: float):
     """Velocities (``mj_differentiatePos`` central differences) and accelerations (central
     differences of those, one-sided at the ends) of a reference motion."""
@@ -183,67 +178,6 @@ def reference_derivatives(mj: mujoco.MjModel, q_ref: np.ndarray, fps: float):
         qdd[1:-1] = (qd[2:] - qd[:-2]) * fps / 2
         qdd[0], qdd[-1] = (qd[1] - qd[0]) * fps, (qd[-1] - qd[-2]) * fps
     return qd, qdd
-
-
-def tent_weights(n: int) -> np.ndarray:
-    """Weights (2n - 1,) of substeps ``kn - n + 1 .. kn + n - 1`` in frame k's value.
-
-    With MuJoCo's semi-implicit step (``v' = v + h a``, ``x' = x + h v'``) the central second
-    difference of the positions at substeps ``(k-1)n, kn, (k+1)n`` is exactly
-    ``sum_m (n - |m|) a[kn + m] / n^2`` (``a[s]``: the acceleration of step s); so a force
-    sampled with these weights is the one Newton's law gives from central differences of the
-    frame positions."""
-    m = np.arange(-n + 1, n)
-    return (n - np.abs(m)) / float(n * n)
-
-
-def tent_average(x: np.ndarray, n: int) -> np.ndarray:
-    """Frame values (T, ...) of substep values (T n, ...) by :func:`tent_weights`; frame 0 (no
-    substeps before it) is the renormalised half tent."""
-    T = len(x) // n
-    w = tent_weights(n)
-    out = np.zeros((T,) + x.shape[1:])
-    for j, m in enumerate(range(-n + 1, n)):
-        idx = np.arange(T) * n + m
-        ok = (idx >= 0) & (idx < len(x))
-        out[ok] += w[j] * x[idx[ok]]
-    if T:
-        out[0] /= w[n - 1:].sum()
-    return out
-
-
-def lever_split(points: np.ndarray, forces: np.ndarray, heel: np.ndarray, toe: np.ndarray) -> np.ndarray:
-    """Split contact forces (k, 3) at points (k, 3) between a foot's heel and toe sites (3,):
-    the lever rule along the heel-toe axis (clipped to the segment). Returns (2, 3): heel, toe.
-
-    Each share is a non-negative multiple of its force (so stays in the friction cone); the sum
-    is the foot's force, and its moment is kept except for the contacts' offsets across the
-    heel-toe axis and beyond its ends."""
-    axis = toe - heel
-    s = np.clip((points - heel) @ axis / max(float(axis @ axis), 1e-12), 0.0, 1.0)
-    return np.stack([((1 - s)[:, None] * forces).sum(0), (s[:, None] * forces).sum(0)])
-
-
-def floor_split(points: np.ndarray, forces: np.ndarray, heel: np.ndarray, toe: np.ndarray,
-                floor_m: float, heights: np.ndarray | None = None) -> np.ndarray:
-    """Split contact forces (k, 3) at points (k, 3) between a foot's heel and toe sites (3,) that
-    are on the floor: :func:`lever_split` when both sites are within ``floor_m`` of the floor
-    (z = 0), everything to the one that is when only one is, and to the lower site when neither
-    is. Returns (2, 3): heel, toe.
-
-    The foot's force is always kept; its moment as :func:`lever_split` keeps it when both sites
-    are down. A raised site never takes a share: on the ball of the foot (heel up) the whole
-    force goes to the toe site, where the lever rule would give the raised heel 5-15 % of it
-    (a point in the air "in contact"). ``heights`` (2,): the sites' heights above the surface
-    under them (terrain, :func:`jmocap.scene.height_above`); their ``z`` when None."""
-    hh, ht = (heel[2], toe[2]) if heights is None else heights
-    down = np.array([hh <= floor_m, ht <= floor_m])
-    if down.all():
-        return lever_split(points, forces, heel, toe)
-    take = int(down[1]) if down.any() else int(ht < hh)  # 0 heel, 1 toe
-    out = np.zeros((2, 3))
-    out[take] = forces.sum(0)
-    return out
 
 
 def foot_cop_free_moment(force: np.ndarray, moment: np.ndarray, fallback: np.ndarray, threshold: float,
@@ -277,43 +211,6 @@ def force_contact_labels(grf: np.ndarray, foot_force: np.ndarray, site_z: np.nda
     small force, as Signorini's condition allows."""
     loaded = np.repeat(foot_force[..., 2] > threshold, 2, axis=-1)
     return ((grf[..., 2] > threshold) | (loaded & (site_z <= floor_m))).astype(np.float32)
-
-
-@dataclass
-class _Contacts:
-    """The foot-floor contacts of the current state (MuJoCo's ``d.contact`` after ``mj_step1``)."""
-
-    index: np.ndarray  # (k,) indices into d.contact
-    foot: np.ndarray  # (k,) 0 left, 1 right
-    body: np.ndarray  # (k,) body id of the foot geom
-    pos: np.ndarray  # (k, 3) contact points
-    sign: np.ndarray  # (k,) +1 when geom2 is the foot (the force MuJoCo reports acts on geom2)
-
-
-def _floor_contacts(d, is_floor, geom_foot, geom_body) -> tuple[_Contacts, int]:
-    """Foot-floor contacts and the number of other floor contacts."""
-    nc = d.ncon
-    g1 = d.contact.geom1[:nc]
-    g2 = d.contact.geom2[:nc]
-    f1, f2 = is_floor[g1], is_floor[g2]
-    other = np.where(f1, g2, g1)
-    on_floor = f1 | f2
-    foot = geom_foot[other]
-    use = on_floor & (foot >= 0)
-    idx = np.nonzero(use)[0]
-    return _Contacts(index=idx, foot=foot[idx], body=geom_body[other[idx]],
-                     pos=d.contact.pos[:nc][idx].copy(),
-                     sign=np.where(f1[idx], 1.0, -1.0)), int(np.sum(on_floor & (foot < 0)))
-
-
-def _contact_forces(mj, d, con: _Contacts) -> np.ndarray:
-    """World-frame forces (k, 3) on the feet of the contacts ``con`` (after the step)."""
-    out = np.zeros((len(con.index), 3))
-    f6 = np.zeros(6)
-    for i, c in enumerate(con.index):
-        mujoco.mj_contactForce(mj, d, int(c), f6)
-        out[i] = con.sign[i] * (d.contact.frame[c].reshape(3, 3).T @ f6[:3])
-    return out
 
 
 def _contact_jacobians(mj, d, con: _Contacts, E: np.ndarray, jp: np.ndarray):
@@ -383,45 +280,9 @@ def _control(M, h, A, Jc, vc, a_des, sw, cfg: PhysicsConfig, mass: float, residu
 
 def foot_geoms(ch: Character, mj: mujoco.MjModel):
     """``(floor, geom_foot, geom_body)`` (ngeom,): the ground (the floor plane and the terrain's
-    boxes: every geom of the world body), each geom's foot (0 left, 1 right, -1 none) and body."""
-    if not any(mj.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE for g in range(mj.ngeom)):
-        raise ValueError("the model has no floor plane")
-    floor = np.asarray(mj.geom_bodyid) == 0
-    geom_foot = np.full(mj.ngeom, -1)
-    for f, L in enumerate(ch.legs):
-        geom_foot[np.isin(mj.geom_bodyid, [L.ankle_body, L.toe_body])] = f
-    return floor, geom_foot, np.array(mj.geom_bodyid)
-
-
-def substep_records(S: int, nv: int) -> dict:
-    """Zeroed per-substep records of a simulation (:func:`frames_from_substeps`'s ``sub``):
-    ``tau`` (S, nv), ``grf`` (S, 4, 3), ``foot`` (S, 2, 3), ``moment`` (S, 2, 3), ``mid`` (S, 2, 3)
-    and ``rescue`` (S,) bool."""
-    return dict(tau=np.zeros((S, nv)), grf=np.zeros((S, 4, 3)), foot=np.zeros((S, 2, 3)),
-                moment=np.zeros((S, 2, 3)), mid=np.zeros((S, 2, 3)), rescue=np.zeros(S, bool))
-
-
-def record_foot_forces(mj, d, con: _Contacts, sites_xpos: np.ndarray, sub: dict, s: int, floor_m: float,
-                       site_h: np.ndarray | None = None) -> None:
-    """Substep ``s``'s foot forces into ``sub`` (:func:`substep_records`), after ``mj_step2``: each
-    foot's contact forces split between its heel and toe sites on the floor (:func:`floor_split`;
-    ``sites_xpos`` (4, 3) the sites at ``mj_step1``, ``site_h`` (4,) their heights above the
-    terrain, their ``z`` when None), its total force, its moment about the world origin and its
-    heel-toe midpoint. A foot without contacts gets zeros."""
-    fw = _contact_forces(mj, d, con)
-    for f in range(2):
-        on = con.foot == f
-        heel, toe = sites_xpos[2 * f], sites_xpos[2 * f + 1]
-        sub["mid"][s, f] = (heel + toe) / 2
-        if on.any():
-            hts = None if site_h is None else site_h[2 * f: 2 * f + 2]
-            sub["grf"][s, 2 * f: 2 * f + 2] = floor_split(con.pos[on], fw[on], heel, toe, floor_m, hts)
-            sub["foot"][s, f] = fw[on].sum(0)
-            sub["moment"][s, f] = np.cross(con.pos[on], fw[on]).sum(0)
-        else:
-            sub["grf"][s, 2 * f: 2 * f + 2] = 0.0
-            sub["foot"][s, f] = 0.0
-            sub["moment"][s, f] = 0.0
+    boxes: every geom of the world body), each geom's foot (0 left, 1 right, -1 none) and body
+    (:func:`jmocap.simulator.foot_geom_map` of the character's legs)."""
+    return foot_geom_map(mj, tuple((L.ankle_body, L.toe_body) for L in ch.legs))
 
 
 def _rescue(on: bool, pos_err: float, rot_err: float, cfg: PhysicsConfig) -> bool:

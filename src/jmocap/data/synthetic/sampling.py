@@ -59,45 +59,16 @@ from jmocap.data.synthetic.physics import (
     substep_records,
 )
 from jmocap.model import scaled_spec
+from jmocap.simulator import add_servos
 
 
 def sampling_model(ch: Character, dt: float, contact_timeconst: float, freq_hz: float):
     """The tracking simulation's model (:func:`~jmocap.data.synthetic.physics.simulation_model`)
-    with a position servo on every hinge; returns ``(model, kv)`` with ``kv`` (nv,) each dof's
-    servo damping (0 on the root)."""
+    with a position servo on every hinge (:func:`jmocap.simulator.add_servos`); returns
+    ``(model, kv)`` with ``kv`` (nv,) each dof's servo damping (0 on the root)."""
     base = simulation_model(ch.mj, dt, contact_timeconst)
-    d = mujoco.MjData(base)
-    d.qpos[:] = ch.q_stand
-    mujoco.mj_forward(base, d)
-    M = np.zeros((base.nv, base.nv))
-    mujoco.mj_fullM(base, d, M)
     spec = scaled_spec(None, round(ch.height, 2), float(np.sum(ch.mj.body_mass)))
-    w = 2 * math.pi * freq_hz
-    kv = np.zeros(base.nv)
-    for j in range(base.njnt):
-        if base.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
-            continue
-        dof = int(base.jnt_dofadr[j])
-        inertia = M[dof, dof]
-        act = spec.add_actuator()
-        act.name = "servo_" + mujoco.mj_id2name(base, mujoco.mjtObj.mjOBJ_JOINT, j)
-        act.target = mujoco.mj_id2name(base, mujoco.mjtObj.mjOBJ_JOINT, j)
-        act.trntype = mujoco.mjtTrn.mjTRN_JOINT
-        act.set_to_position(kp=inertia * w * w, kv=2 * inertia * w)
-        act.ctrllimited = False
-        act.forcelimited = False
-        kv[dof] = 2 * inertia * w
-    mj = spec.compile()
-    if mj.nq != base.nq or mj.nv != base.nv or not np.allclose(mj.body_mass, base.body_mass) \
-            or not np.allclose(mj.body_pos, base.body_pos) or not np.allclose(mj.geom_size, base.geom_size):
-        raise ValueError("the sampling model does not reproduce the character's model")
-    mj.opt.timestep = base.opt.timestep
-    mj.opt.integrator = base.opt.integrator
-    mj.opt.cone = base.opt.cone
-    mj.geom_friction[:] = base.geom_friction
-    mj.dof_damping[:] = base.dof_damping
-    mj.geom_solref[:] = base.geom_solref
-    return mj, kv
+    return add_servos(spec, base, ch.q_stand, freq_hz)
 
 
 def feedforward(ch: Character, mj, q_ref, qd_ref, qdd_ref, cfg) -> np.ndarray:
