@@ -163,6 +163,8 @@ class _Batch:
     half_width: np.ndarray  # (B,) sole half-width of the estimate models
     # (B, 4, 4) the clips' true extrinsics where the estimates used others (EvalConfig.camera)
     true_extrinsics: np.ndarray | None = None
+    # the estimate models one by one (B of them; a host-simulated method reads each clip's own)
+    estimates: list[Model] | None = None
 
 
 @functools.lru_cache(maxsize=8)
@@ -208,7 +210,7 @@ def _prepare(clips: list[Clip], length: int, size: int, subject_height: str = "g
                 g[key] = _pad_edge(getattr(c, fld), length)
         gt.append(g)
     hw = np.array([M.sole_half_width(m) for m in estimates], np.float32)
-    return _Batch(clips, inputs, models, gt, hw)
+    return _Batch(clips, inputs, models, gt, hw, estimates=estimates)
 
 
 def _evaluate_clip(clip: Clip, pred: dict, gt: dict, length: int, pred_mass: float,
@@ -392,7 +394,13 @@ def _predict(params, batch: _Batch, method: str, cfg) -> list[tuple[dict, float,
             pred = _ground_truth_pred(batch.gt[i])
             out.append((pred, c.mass_kg or subject_model(c).total_mass, {}))
         return out
-    motion = _batched_reconstruct(methods_.get_method(method).name)(params, batch.models, batch.inputs, cfg)
+    host = methods_.get_method(method).host
+    if host is not None:  # simulated on the host (mocon), clip by clip: the real clips only
+        n, B = len(batch.clips), len(batch.estimates)
+        motion = host(params, batch.estimates[:n], jax.tree.map(lambda x: x[:n], batch.inputs), cfg)
+        motion = jax.tree.map(lambda x: np.concatenate([x, np.repeat(x[-1:], B - n, 0)]), motion)
+    else:
+        motion = _batched_reconstruct(methods_.get_method(method).name)(params, batch.models, batch.inputs, cfg)
     if batch.true_extrinsics is not None:  # made with another camera: into the true world
         motion = _to_true_world(motion, batch.inputs.extrinsics, batch.true_extrinsics)
     # (a non-finite estimate gives non-finite quantities, which evaluate_arrays reports)

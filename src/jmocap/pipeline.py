@@ -286,6 +286,8 @@ class Reconstructor:
         plan = self.plan(clips[0])
         if any(self.plan(c) != plan for c in clips):
             raise ValueError("the clips of a group must share one chunk plan")
+        if self.method.host is not None:
+            return self._run_host(clips, plan[0])
         rows = list(clips) + [clips[0]] * (self.group_size - len(clips))
         H, A, G = self.history, self.lookahead, self.group_size
         # every row's keypoints over the whole plan at once, history in front and lookahead
@@ -324,6 +326,28 @@ class Reconstructor:
                 res["diagnostics"] = {k: float(v[i]) for k, v in fetched[-1]["diagnostics"].items()}
             out.append(res)
         return out
+
+    def _run_host(self, clips: Sequence[Clip], length: int) -> list[dict[str, np.ndarray]]:
+        """A host-simulated method's (``Method.host``: ``mocon``) results of a group, whole clips
+        padded to ``length``: no filler rows (the host runs clip by clip), keypoints in jitted JAX."""
+        inputs = stack_inputs([ClipInputs.from_clip(c, length) for c in clips])
+        models = [subject_model(c) for c in clips]
+        motion = self.method.host(self.params, models, inputs, self.config)
+        kp3d = _host_keypoints(_stack(models), jnp.asarray(motion.q), self.config.layout)
+        res = jax.device_get(ChunkResult(motion, kp3d))
+        fields = _fields(res)
+        out = []
+        for i, c in enumerate(clips):
+            r = {k: np.asarray(v[i])[: c.num_frames] for k, v in fields.items() if k != "diagnostics"}
+            if "diagnostics" in fields:
+                r["diagnostics"] = {k: float(v[i]) for k, v in fields["diagnostics"].items()}
+            out.append(r)
+        return out
+
+
+@partial(jax.jit, static_argnames=("layout",))
+def _host_keypoints(models: Model, q: Array, layout: str) -> Array:
+    return jax.vmap(lambda m, qs: jax.vmap(lambda x: P.keypoints(m, x, layout))(qs))(models, q)
 
 
 def _fields(res: ChunkResult) -> dict[str, np.ndarray]:

@@ -11,6 +11,9 @@
                           with its own trained weights) and ``dnd_known_track``
 ``dnd_trajopt``           offline, unknown moving camera: D&D's camera track (or a still camera),
                           then trajopt under it (:mod:`jmocap.methods.dnd_trajopt`)
+``mocon``                 offline: trajopt's fit tracked by a simulated character (MuJoCo C) with
+                          Neural MoCon's sampling-based control (:mod:`jmocap.methods.mocon`);
+                          variants ``mocon_uniform``, ``mocon_no_interaction`` (Tab. 3's ablations)
 variants of ``physcap``   ``physionical`` (every stage on), ``fixed_gains``, ``no_grfnet``,
                           ``no_hard_constraint``, ``no_canonicalisation`` (the paper's ablations)
 ========================  ==================================================================
@@ -22,6 +25,7 @@ inputs, config)`` is the pure function of one clip. See :mod:`jmocap.methods.bas
 from jmocap.methods import kinematic, physcap, pip, trajopt  # noqa: F401, I001  (registers the methods)
 from jmocap.methods import dnd  # noqa: F401, E402  (registered after them: the listing's order)
 from jmocap.methods import dnd_trajopt  # noqa: F401, E402
+from jmocap.methods import mocon  # noqa: F401, E402
 from jmocap.methods.base import (
     Method,
     Variant,

@@ -104,6 +104,11 @@ class Method:
     #: top-level entries of the parameters that the method loads from its own shipped file when
     #: the parameters lack them (``dnd``'s networks, trained apart from the default weights)
     shipped_networks: tuple[str, ...] = ()
+    #: a method that simulates on the host (MuJoCo C, ``mocon``): ``host(params, models, inputs,
+    #: config) -> Motion`` of a batch (``models`` one :class:`~jmocap.model.Model` per clip,
+    #: ``inputs`` stacked, numpy in and out), which the engine and the evaluation call instead of
+    #: ``jit(vmap(reconstruct))``; None for the pure-JAX methods
+    host: Callable | None = None
 
     def weights_config(self, fields: Mapping[str, Any] | None) -> dict[str, Any]:
         """The part of a weights' training config (a flat dict of fields) this method takes."""
