@@ -320,9 +320,10 @@ class MjxRollouts:
             nu = model.nu
 
             def step(dd, u):
-                dd = dd.replace(ctrl=u[:nu], qfrc_applied=u[nu:])
-                dd = mjx.step(model, dd)
-                return dd, (dd.qpos, dd.qvel)
+                new = mjx.step(model, dd.replace(ctrl=u[:nu], qfrc_applied=u[nu:]))
+                # MJX's contact indices come back int64 under float64 (put_data makes int32)
+                new = jax.tree.map(lambda a, b: a.astype(b.dtype), new, dd)
+                return new, (new.qpos, new.qvel)
 
             def one(c):
                 _, (qs, vs) = jax.lax.scan(step, data, c)
