@@ -38,6 +38,7 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=32)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--mjx", action="store_true", help="also time MJX (compiles for a minute or more on a CPU)")
+    ap.add_argument("--only-mjx", action="store_true", help="MJX alone (its own process: no MuJoCo C thread pool)")
     args = ap.parse_args()
     from test_mocon import _reference
 
@@ -57,22 +58,24 @@ def main() -> None:
                                np.zeros((args.samples, steps, sim.mj.nv))], -1)
     ends = np.arange(1, K + 1) * sim.n - 1
     cores = os.cpu_count() or 1
-    backends = [("mujoco C, 1 thread", MC.MujocoRollouts(sim.mj, 1)),
-                (f"mujoco C, {cores} threads", MC.MujocoRollouts(sim.mj, cores))]
-    if args.mjx:
+    backends = [] if args.only_mjx else [("mujoco C, 1 thread", MC.MujocoRollouts(sim.mj, 1)),
+                                         (f"mujoco C, {cores} threads", MC.MujocoRollouts(sim.mj, cores))]
+    if args.mjx or args.only_mjx:
         backends.append(("MJX (jax " + __import__("jax").default_backend() + ")", MC.MjxRollouts(sim.mj)))
     print(f"one window: {args.samples} samples x {K} frames x {sim.n} substeps = {args.samples * steps} steps")
     base = None
     for name, run in backends:
+        t = time.perf_counter()
         run(d, controls, ends)  # warm-up (MJX compiles)
+        print(f"  {name:28s} first call {time.perf_counter() - t:.1f} s", flush=True)
         t = time.perf_counter()
         for _ in range(args.repeat):
             run(d, controls, ends)
         dt = (time.perf_counter() - t) / args.repeat
         rate = args.samples * steps / dt
         base = base or rate
-        print(f"  {name:28s} {dt * 1000:8.1f} ms/window  {rate:10.0f} steps/s  x{rate / base:.2f}")
-    for backend in ("mujoco", "mjx") if args.mjx else ("mujoco",):
+        print(f"  {name:28s} {dt * 1000:8.1f} ms/window  {rate:10.0f} steps/s  x{rate / base:.2f}", flush=True)
+    for backend in ("mjx",) if args.only_mjx else ("mujoco", "mjx") if args.mjx else ("mujoco",):
         cfg = config.replace(backend=backend)
         t = time.perf_counter()
         m = MC.track(model, ClipInputs.from_clip(clip), ref, cfg)

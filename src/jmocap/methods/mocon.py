@@ -305,8 +305,8 @@ class MujocoRollouts:
 
 
 class MjxRollouts:
-    """The same rollouts with MJX (``jax.vmap`` over samples of a ``lax.scan`` of ``mjx.step``):
-    for an accelerator. Agrees with :class:`MujocoRollouts` to the differences of the two
+    """The same rollouts with MJX (``jax.vmap`` over samples of a ``lax.scan`` of ``mjx.step``;
+    ``lax.map`` on a CPU): for an accelerator. Agrees with :class:`MujocoRollouts` to the differences of the two
     constraint solvers (tests/test_mocon.py measures it)."""
 
     def __init__(self, mj: mujoco.MjModel, threads: int = 0):
@@ -329,6 +329,11 @@ class MjxRollouts:
                 _, (qs, vs) = jax.lax.scan(step, data, c)
                 return qs[ends], vs[ends]
 
+            if jax.default_backend() == "cpu":
+                # one sample at a time: MJX's constraint solver factors with jnp.linalg
+                # (LAPACK on a CPU), and batched LAPACK calls can deadlock XLA's CPU thread
+                # pool on a 2-core machine (jmocap.physics.linalg says why)
+                return jax.lax.map(one, controls)
             return jax.vmap(one)(controls)
 
         self._run = jax.jit(run)
