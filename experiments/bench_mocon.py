@@ -10,8 +10,8 @@ Two measurements per backend:
   sample advanced by one simulation substep) and the ratio to MuJoCo C on one thread;
 * **clip**: :func:`jmocap.methods.mocon.track` of a synthetic walk of ``--frames`` frames
   (its ground truth as the reference, so no ``trajopt`` compile is timed): seconds per clip and
-  frames per second (MuJoCo C only unless ``--mjx``; MJX on a CPU is slow, it is for an
-  accelerator).
+  frames per second, MuJoCo C (MJX on a CPU runs one sample at a time, minutes per window
+  of the defaults: it is for an accelerator).
 """
 
 from __future__ import annotations
@@ -75,7 +75,9 @@ def main() -> None:
         rate = args.samples * steps / dt
         base = base or rate
         print(f"  {name:28s} {dt * 1000:8.1f} ms/window  {rate:10.0f} steps/s  x{rate / base:.2f}", flush=True)
-    for backend in ("mjx",) if args.only_mjx else ("mujoco", "mjx") if args.mjx else ("mujoco",):
+    # a whole clip with MuJoCo C only: MJX on a CPU simulates one sample at a time (tens of
+    # minutes a clip); on an accelerator, time it with config.replace(backend="mjx")
+    for backend in () if args.only_mjx else ("mujoco",):
         cfg = config.replace(backend=backend)
         t = time.perf_counter()
         m = MC.track(model, ClipInputs.from_clip(clip), ref, cfg)

@@ -229,6 +229,19 @@ def foot_geom_map(mj: mujoco.MjModel, feet: tuple[tuple[int, ...], tuple[int, ..
     return ground, geom_foot, np.array(mj.geom_bodyid)
 
 
+def rewind(mj: mujoco.MjModel, d: mujoco.MjData, snapshots: dict[int, tuple[np.ndarray, np.ndarray]], k0: int,
+           windows: int, window: int) -> tuple[int, np.ndarray]:
+    """A sampling controller's backtrack: restore ``d`` to the latest snapshot at or before
+    ``windows - 1`` windows (of ``window`` frames) before frame ``k0`` (``snapshots``: frame ->
+    (``mjSTATE_INTEGRATION`` state, the correction in force)). Returns that frame and its
+    correction."""
+    back = max(0, k0 - (windows - 1) * window)
+    back = max(k for k in snapshots if k <= back)
+    keep, prev = snapshots[back]
+    mujoco.mj_setState(mj, d, keep, mujoco.mjtState.mjSTATE_INTEGRATION)
+    return back, prev
+
+
 __all__ = [
     "FootContacts",
     "add_servos",
@@ -238,6 +251,7 @@ __all__ = [
     "foot_geom_map",
     "lever_split",
     "record_foot_forces",
+    "rewind",
     "simulation_model",
     "substep_records",
     "tent_average",

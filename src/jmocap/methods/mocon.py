@@ -81,6 +81,7 @@ from jmocap.simulator import (
     foot_contacts,
     foot_geom_map,
     record_foot_forces,
+    rewind,
     simulation_model,
     substep_records,
     tent_average,
@@ -545,12 +546,8 @@ def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) ->
                 prev = np.zeros(nu)
                 k0 = k1
                 continue
-            back = max(0, k0 - (config.backtrack_windows - 1) * W)
-            back = max(k for k in snapshots if k <= back)
-            keep, prev = snapshots[back]
-            mujoco.mj_setState(mj, d, keep, keep_spec)
+            k0, prev = rewind(mj, d, snapshots, k0, config.backtrack_windows, W)
             retry_until = k1 + W
-            k0 = back
             continue
         k0 = k1
     q_out[Te - 1], qd_out[Te - 1] = d.qpos, d.qvel

@@ -59,7 +59,7 @@ from jmocap.data.synthetic.physics import (
     substep_records,
 )
 from jmocap.model import scaled_spec
-from jmocap.simulator import add_servos
+from jmocap.simulator import add_servos, rewind
 
 
 def sampling_model(ch: Character, dt: float, contact_timeconst: float, freq_hz: float):
@@ -281,12 +281,8 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
             if backtracks > sc.max_backtracks:
                 raise GenerationError(f"the sampling controller lost balance at frame {k1} after "
                                       f"{sc.max_backtracks} backtracks")
-            back = max(0, k0 - (sc.backtrack_windows - 1) * window)
-            back = max(k for k in snapshots if k <= back)
-            keep, prev = snapshots[back]
-            mujoco.mj_setState(mj, d, keep, keep_spec)
+            k0, prev = rewind(mj, d, snapshots, k0, sc.backtrack_windows, window)
             retry_until = k1 + window
-            k0 = back
             continue
         k0 = k1
     q_out[Te - 1], qd_out[Te - 1] = d.qpos, d.qvel
