@@ -93,6 +93,9 @@ Array = jnp.ndarray
 #: balance the body); the others (arms, head) with ``other_sigma`` of it
 BALANCE_JOINTS = ("hip", "knee", "ankle", "foot", "spine")
 BACKENDS = ("mujoco", "mjx")
+#: a contact site this high or lower above the ground may take its foot's force (the synthetic
+#: ground truth's ``PhysicsConfig.site_floor_m``: the forces are split the same way)
+SITE_FLOOR_M = 0.02
 
 
 @struct.dataclass
@@ -466,7 +469,7 @@ def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) ->
                 # the servos' effective force at the new velocity (implicitfast integrates their
                 # damping implicitly), plus the feed-forward
                 sub["tau"][s] = d.qfrc_actuator + d.qfrc_applied - sim.dt * sim.kv * d.qacc
-                record_foot_forces(mj, d, con, sp, sub, s, 0.02, height_above(scene, sp))
+                record_foot_forces(mj, d, con, sp, sub, s, SITE_FLOOR_M, height_above(scene, sp))
             target[k] = q_ref[k]
             target[k, sim.hinge_q] = ctrl[(k - k0) * n, :nu]
 
