@@ -229,11 +229,27 @@ def foot_geom_map(mj: mujoco.MjModel, feet: tuple[tuple[int, ...], tuple[int, ..
     return ground, geom_foot, np.array(mj.geom_bodyid)
 
 
+def snapshot(mj: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
+    """``d``'s ``mjSTATE_INTEGRATION`` state: what :func:`rewind` restores."""
+    keep = np.zeros(mujoco.mj_stateSize(mj, mujoco.mjtState.mjSTATE_INTEGRATION))
+    mujoco.mj_getState(mj, d, keep, mujoco.mjtState.mjSTATE_INTEGRATION)
+    return keep
+
+
+def tilt(quat_a: np.ndarray, quat_b: np.ndarray) -> float:
+    """Angle (rad) between the body z axes of two orientations (wxyz quaternions)."""
+    Ra, Rb = np.zeros(9), np.zeros(9)
+    mujoco.mju_quat2Mat(Ra, quat_a / np.linalg.norm(quat_a))
+    mujoco.mju_quat2Mat(Rb, quat_b / np.linalg.norm(quat_b))
+    za, zb = Ra.reshape(3, 3)[:, 2], Rb.reshape(3, 3)[:, 2]
+    return float(np.arccos(np.clip(za @ zb, -1.0, 1.0)))
+
+
 def rewind(mj: mujoco.MjModel, d: mujoco.MjData, snapshots: dict[int, tuple[np.ndarray, np.ndarray]], k0: int,
            windows: int, window: int) -> tuple[int, np.ndarray]:
     """A sampling controller's backtrack: restore ``d`` to the latest snapshot at or before
     ``windows - 1`` windows (of ``window`` frames) before frame ``k0`` (``snapshots``: frame ->
-    (``mjSTATE_INTEGRATION`` state, the correction in force)). Returns that frame and its
+    (:func:`snapshot`, the correction in force)). Returns that frame and its
     correction."""
     back = max(0, k0 - (windows - 1) * window)
     back = max(k for k in snapshots if k <= back)
@@ -253,7 +269,9 @@ __all__ = [
     "record_foot_forces",
     "rewind",
     "simulation_model",
+    "snapshot",
     "substep_records",
     "tent_average",
     "tent_weights",
+    "tilt",
 ]

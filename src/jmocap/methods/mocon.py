@@ -83,8 +83,10 @@ from jmocap.simulator import (
     record_foot_forces,
     rewind,
     simulation_model,
+    snapshot,
     substep_records,
     tent_average,
+    tilt,
 )
 
 Array = jnp.ndarray
@@ -377,14 +379,6 @@ def _start_velocity(mj: mujoco.MjModel, q: np.ndarray, fps: float, frames: int =
     return v
 
 
-def _tilt(a: np.ndarray, b: np.ndarray) -> float:
-    """Angle (rad) between the body z axes of two orientations (wxyz)."""
-    Ra, Rb = np.zeros(9), np.zeros(9)
-    mujoco.mju_quat2Mat(Ra, a / np.linalg.norm(a))
-    mujoco.mju_quat2Mat(Rb, b / np.linalg.norm(b))
-    return float(np.arccos(np.clip(Ra.reshape(3, 3)[:, 2] @ Rb.reshape(3, 3)[:, 2], -1.0, 1.0)))
-
-
 def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) -> Motion:
     """Track one clip's reference (``ref``, ``trajopt``'s result; numpy arrays of one clip, padded
     frames marked by ``inputs.mask``) by sampling-based control (module docstring)."""
@@ -408,7 +402,7 @@ def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) ->
     if config.feedforward:
         ff[:T, 6:] = np.asarray(ref.tau[:T, 6:], np.float64)
         ff[T] = ff[T - 1]
-    joints, com, sites = jax.device_get(reference_quantities(model, jnp.asarray(q_ref, jnp.float32), inputs_layout(config)))
+    joints, com, sites = jax.device_get(reference_quantities(model, jnp.asarray(q_ref, jnp.float32), config.layout))
     joints_vel = np.zeros_like(joints)
     joints_vel[1:] = (joints[1:] - joints[:-1]) * fps
     com_vel = np.zeros_like(com)
@@ -484,19 +478,16 @@ def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) ->
             vs = np.concatenate([vs, np.repeat(vs[:, -1:], pad, 1)], 1)
         loss = np.asarray(sample_losses(model, jnp.asarray(qs, jnp.float32), jnp.asarray(vs, jnp.float32), start,
                                         frame_ref, ok, jnp.asarray(off / np.maximum(spread, 1e-9), jnp.float32),
-                                        jscene, layout=inputs_layout(config), weights=weights))
+                                        jscene, layout=config.layout, weights=weights))
         return ctrl, loss
 
     snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    keep_spec = mujoco.mjtState.mjSTATE_INTEGRATION
     prev = np.zeros(nu)
     k0, retry_until = 0, -1
     failures: dict[int, int] = {}  # frame -> the failed windows that ended there
     backtracks = resets = simulated = 0
     while k0 < Te - 1:
-        keep = np.zeros(mujoco.mj_stateSize(mj, keep_spec))
-        mujoco.mj_getState(mj, d, keep, keep_spec)
-        snapshots[k0] = (keep, prev.copy())
+        snapshots[k0] = (snapshot(mj, d), prev.copy())
         k1 = min(k0 + W, Te - 1)
         k2 = min(k1 + A, Te - 1)
         retry = k0 < retry_until
@@ -506,7 +497,7 @@ def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) ->
         # pad to K frames (one program per sample count), the padding not counted
         ks = np.arange(k0 + 1, k0 + 1 + K).clip(max=Te - 1)
         ok = jnp.asarray(np.arange(K) < (k2 - k0))
-        start = reference_quantities(model, jnp.asarray(d.qpos[None], jnp.float32), inputs_layout(config))
+        start = reference_quantities(model, jnp.asarray(d.qpos[None], jnp.float32), config.layout)
         start = tuple(x[0] for x in start)
         frame_ref = {k: jnp.asarray(v[ks], jnp.float32) for k, v in reference.items()}
         frame_ref["intrinsics"] = jnp.asarray(intrinsics, jnp.float32)
@@ -537,7 +528,7 @@ def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) ->
         commit(k0, k1, ctrl[best])
         pelvis = float(height_above(scene, d.qpos[None, :3])[0])
         bad = (not np.all(np.isfinite(d.qpos)) or pelvis < config.fall_height * pelvis_ref[k1]
-               or _tilt(d.qpos[3:7], q_ref[k1, 3:7]) > math.radians(config.backtrack_tilt_deg))
+               or tilt(d.qpos[3:7], q_ref[k1, 3:7]) > math.radians(config.backtrack_tilt_deg))
         if bad:
             backtracks += 1
             failures[k1] = failures.get(k1, 0) + 1
@@ -567,10 +558,6 @@ def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) ->
                    "mocon_samples_simulated": np.float32(simulated)}
     return Motion(padded(q_out), padded(qd_out), padded(tau), padded(grf), padded(contact), padded(target[:T]),
                   mask, diagnostics=diagnostics)
-
-
-def inputs_layout(config: MoconConfig) -> str:
-    return config.layout
 
 
 # ---------------------------------------------------------------------------------------

@@ -59,7 +59,7 @@ from jmocap.data.synthetic.physics import (
     substep_records,
 )
 from jmocap.model import scaled_spec
-from jmocap.simulator import add_servos, rewind
+from jmocap.simulator import add_servos, rewind, snapshot, tilt
 
 
 def sampling_model(ch: Character, dt: float, contact_timeconst: float, freq_hz: float):
@@ -108,15 +108,6 @@ def _support_points(mj, q, sites) -> np.ndarray:
         mujoco.mj_kinematics(mj, d)
         out[i] = d.site_xpos[sites, :2].mean(0)
     return out
-
-
-def _tilt(quat_a: np.ndarray, quat_b: np.ndarray) -> float:
-    """Angle (rad) between the body z axes of two orientations."""
-    Ra, Rb = np.zeros(9), np.zeros(9)
-    mujoco.mju_quat2Mat(Ra, quat_a / np.linalg.norm(quat_a))
-    mujoco.mju_quat2Mat(Rb, quat_b / np.linalg.norm(quat_b))
-    za, zb = Ra.reshape(3, 3)[:, 2], Rb.reshape(3, 3)[:, 2]
-    return float(np.arccos(np.clip(za @ zb, -1.0, 1.0)))
 
 
 def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: PhysicsConfig, lead: int = 0,
@@ -172,7 +163,6 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         return np.concatenate(tq), np.concatenate(tf)
 
     full_spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    keep_spec = mujoco.mjtState.mjSTATE_INTEGRATION
     control_spec = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_QFRC_APPLIED
     state = np.zeros(mujoco.mj_stateSize(mj, full_spec))
     d = mujoco.MjData(mj)
@@ -243,9 +233,7 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     prev = np.zeros(nu)
     k0, backtracks, retry_until, simulated = 0, 0, -1, 0
     while k0 < Te - 1:
-        keep = np.zeros(mujoco.mj_stateSize(mj, keep_spec))
-        mujoco.mj_getState(mj, d, keep, keep_spec)
-        snapshots[k0] = (keep, prev.copy())
+        snapshots[k0] = (snapshot(mj, d), prev.copy())
         k1 = min(k0 + window, Te - 1)
         k2 = min(k1 + lookahead, Te - 1)
         retry = k0 < retry_until
@@ -275,7 +263,7 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         commit(k0, k1, ctrl[best, :steps], base_f[:steps])
         bad = (not np.all(np.isfinite(d.qpos)) or d.qpos[2] < z_fall
                or d.xmat[ch.pelvis].reshape(3, 3)[2, 2] < cos_tilt
-               or _tilt(d.qpos[3:7], qr[k1, 3:7]) > math.radians(sc.backtrack_tilt_deg))
+               or tilt(d.qpos[3:7], qr[k1, 3:7]) > math.radians(sc.backtrack_tilt_deg))
         if bad:
             backtracks += 1
             if backtracks > sc.max_backtracks:
