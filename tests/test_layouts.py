@@ -32,8 +32,10 @@ def sites_at_poses():
         d.qpos[:3] = rng.uniform(-1, 1, 3) + [0, 0, 1]
         mujoco.mj_kinematics(mj, d)
         for name, lay in LAYOUTS.items():
-            ids = [mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, s) for s in lay.sites]
-            out[name].append(d.site_xpos[ids].copy())
+            ids = [mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, s) if s else -1 for s in lay.sites]
+            assert all(i >= 0 for i, s in zip(ids, lay.sites) if s), name  # every named site exists
+            # a joint without a site (BlazePose's face corners and fingers): NaN, never a position
+            out[name].append(np.where(np.array(ids)[:, None] >= 0, d.site_xpos[ids], np.nan))
     return {k: np.array(v) for k, v in out.items()}
 
 
@@ -55,8 +57,8 @@ def test_midpoint_sites_are_what_they_say(sites_at_poses):
             assert 1e-4 < err.max() < 0.12, (site, err.max())
 
 
-@pytest.mark.parametrize("src", ["coco17", "h36m17", "body25", "halpe26"])
-@pytest.mark.parametrize("dst", ["body25", "coco17", "h36m17", "halpe26"])
+@pytest.mark.parametrize("src", ["coco17", "h36m17", "body25", "halpe26", "blazepose33"])
+@pytest.mark.parametrize("dst", ["body25", "coco17", "h36m17", "halpe26", "blazepose33"])
 def test_conversion_copies_sites_and_marks_the_rest_missing(src, dst, sites_at_poses):
     conv = conversion(src, dst)
     S, D = get_layout(src), get_layout(dst)
@@ -73,9 +75,12 @@ def test_conversion_copies_sites_and_marks_the_rest_missing(src, dst, sites_at_p
     assert names == set(D.joints) and len(conv.copied) + len(conv.derived_joints) + len(conv.absent) == D.num_joints
     for j, name in enumerate(D.joints):
         if name in conv.copied:
-            i = S.sites.index(D.sites[j])
+            i = conv.index[j]
+            assert S.sites[i] == D.sites[j] and (D.sites[j] or src == dst), name  # only a layout to itself copies a joint without a site
             if i == 0:  # the undetected source joint stays undetected
                 assert np.all(out[:, j] == 0)
+            elif not D.sites[j]:
+                np.testing.assert_array_equal(out[:, j], kp[:, i].astype(np.float32))
             else:
                 np.testing.assert_allclose(out[:, j, :2], uv_true[:, j], atol=1e-3)
                 np.testing.assert_allclose(out[:, j, 2], conf[i], rtol=1e-6)
@@ -111,6 +116,13 @@ def test_coco_to_body25_says_what_it_did():
     a = conversion("halpe26", "body25")  # AlphaPose's: every BODY_25 joint, nothing derived
     assert (a.absent, a.derived_joints, a.dropped) == ((), (), ("Head",))
     assert "absent: REye, LEye, REar, LEar" in h.describe()
+    b = conversion("blazepose33", "body25")  # MediaPipe's: no small toes; face corners, mouth, fingers unused
+    assert b.derived_joints == ("Neck", "MidHip") and b.absent == ("LSmallToe", "RSmallToe")
+    assert set(b.dropped) == {f"{s}_{p}" for s in ("left", "right")
+                              for p in ("eye_inner", "eye_outer", "pinky", "index", "thumb")} | {"mouth_left", "mouth_right"}
+    assert conversion("body25", "blazepose33").index[get_layout("blazepose33").index("left_foot_index")] == 19  # LBigToe
+    with pytest.raises(ValueError, match="blazepose33.*left_eye_inner"):
+        get_layout("blazepose33").require_sites("synthesising a clip")
     with pytest.raises(ValueError, match=r"\(\.\.\., 17, 3\) for layout 'coco17'"):
         conv.keypoints(np.zeros((3, 25, 3)))
 
@@ -129,11 +141,12 @@ def test_clip_to_layout(sites_at_poses):
 
 
 def test_every_layout_reconstructs_end_to_end(tmp_path, xla_cache):
-    """The demo walk as BODY_25, COCO-17, Human3.6M-17 and Halpe-26 clips (the same detections, the
+    """The demo walk as BODY_25, COCO-17, Human3.6M-17, Halpe-26 and BlazePose-33 clips (the same detections, the
     joints each layout lacks removed) through ``jmocap reconstruct`` with the shipped BODY_25
     weights: every clip gets a result that records its conversion, and the joints are about as
     accurate as from BODY_25 (against the BODY_25 ground truth; the shipped weights measure
-    within 2 % on the held-out archive, docs/evaluation.md; here within 15 % on one clip)."""
+    within 10 % on the held-out archives, docs/evaluation.md; here within 15 % on one clip, 30 %
+    for BlazePose-33)."""
     import json
 
     from jmocap.cli import main
@@ -144,14 +157,14 @@ def test_every_layout_reconstructs_end_to_end(tmp_path, xla_cache):
     clip = load_clip(demo_assets() / "ground_truth" / "demo_walk.npz").slice(0, 60)
     inp = tmp_path / "in"
     inp.mkdir()
-    for layout in ("body25", "coco17", "h36m17", "halpe26"):
+    for layout in ("body25", "coco17", "h36m17", "halpe26", "blazepose33"):
         save_clip(inp / f"walk_{layout}.npz", clip.to_layout(layout).replace(name=f"walk_{layout}"))
     out = tmp_path / "out"
     assert main(["reconstruct", str(inp), str(out), "--method", "kinematic", "--quiet",
                  "--cache-dir", str(xla_cache)]) == 0
     entries = {e["name"]: e for e in map(json.loads, (out / "manifest.jsonl").read_text().splitlines())}
     err = {}
-    for layout in ("body25", "coco17", "h36m17", "halpe26"):
+    for layout in ("body25", "coco17", "h36m17", "halpe26", "blazepose33"):
         e = entries[f"walk_{layout}"]
         assert e["status"] == "ok", e
         assert (e.get("layout_conversion") or {}).get("from") == (None if layout == "body25" else layout)
@@ -161,4 +174,7 @@ def test_every_layout_reconstructs_end_to_end(tmp_path, xla_cache):
         rel = (kp - kp[:, 8:9]) - (clip.gt_keypoints3d - clip.gt_keypoints3d[:, 8:9])
         err[layout] = float(np.linalg.norm(rel, axis=-1).mean())
     assert err["coco17"] < 1.15 * err["body25"] and err["h36m17"] < 1.15 * err["body25"], err
+    # BlazePose-33: feet without small toes, a pattern the learned stage was not trained on; on
+    # this one walk +24 %, on the held-out archives +9.0 % and +7.8 % (docs/evaluation.md)
+    assert err["blazepose33"] < 1.3 * err["body25"], err
     assert abs(err["halpe26"] - err["body25"]) < 1e-6, err  # Halpe-26 has every BODY_25 joint

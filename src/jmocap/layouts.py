@@ -7,6 +7,9 @@ orders them, and a parallel tuple of the model sites that produce each joint:
 * ``coco17``: COCO keypoints (``person_keypoints`` category of the COCO 2017 annotations).
 * ``h36m17``: the 17 Human3.6M joints used by VideoPose3D / most lifting work
   (pelvis, right leg, left leg, spine, thorax, neck/nose, head, left arm, right arm).
+* ``halpe26``: AlphaPose's Halpe-26 (COCO-17, head top, neck, mid-hip and BODY_25's feet).
+* ``blazepose33``: MediaPipe / BlazePose's 33 landmarks; its face-corner, mouth and finger
+  landmarks have no site on the character (site ``""``) and are dropped when converted.
 
 Site names are those of ``jmocap/assets/mjcf/humanoid.xml``; ``tests/test_model.py`` checks that
 every site named here exists in the model.
@@ -34,6 +37,19 @@ class Layout:
     # these are: the two hips, whose 3D midpoint is the character's mid-hip site exactly (so
     # their 2D midpoint is the root's projection up to perspective); () for none
     root_fallback: tuple[str, ...] = ()
+
+    @property
+    def sited(self) -> bool:
+        """Whether every joint is a site of the character (a layout can be synthesised, and its
+        3D joints computed, only then; BlazePose-33's face and finger landmarks are not)."""
+        return all(self.sites)
+
+    def require_sites(self, what: str) -> None:
+        """Raise ``ValueError`` naming ``what`` unless :attr:`sited`."""
+        if not self.sited:
+            missing = [j for j, s in zip(self.joints, self.sites) if not s]
+            raise ValueError(f"{what} needs a character site for every joint; layout {self.name!r} has none for "
+                             f"{', '.join(missing)} (use body25, or convert: Clip.to_layout)")
 
     @property
     def num_joints(self) -> int:
@@ -188,14 +204,61 @@ HALPE26 = _layout(
     root_fallback=("RHip", "LHip"),
 )
 
-LAYOUTS: dict[str, Layout] = {layout.name: layout for layout in (BODY25, COCO17, H36M17, HALPE26)}
+# MediaPipe / BlazePose's 33 landmarks (Bazarevsky et al. 2020, "BlazePose: on-device real-time
+# body pose tracking"; MediaPipe's PoseLandmark order, left/right of the person). The character
+# has no site for the inner and outer eye corners, the mouth or the fingers: those landmarks have
+# no site ("") and are dropped by every conversion; BlazePose's foot index (the tip of the foot)
+# is the big toe's site, as in ``jmocap video``'s mapping to BODY_25 (jmocap.video.mapping).
+BLAZEPOSE33 = _layout(
+    "blazepose33",
+    (
+        ("nose", "kp_nose"),
+        ("left_eye_inner", ""),
+        ("left_eye", "kp_left_eye"),
+        ("left_eye_outer", ""),
+        ("right_eye_inner", ""),
+        ("right_eye", "kp_right_eye"),
+        ("right_eye_outer", ""),
+        ("left_ear", "kp_left_ear"),
+        ("right_ear", "kp_right_ear"),
+        ("mouth_left", ""),
+        ("mouth_right", ""),
+        ("left_shoulder", "kp_left_shoulder"),
+        ("right_shoulder", "kp_right_shoulder"),
+        ("left_elbow", "kp_left_elbow"),
+        ("right_elbow", "kp_right_elbow"),
+        ("left_wrist", "kp_left_wrist"),
+        ("right_wrist", "kp_right_wrist"),
+        ("left_pinky", ""),
+        ("right_pinky", ""),
+        ("left_index", ""),
+        ("right_index", ""),
+        ("left_thumb", ""),
+        ("right_thumb", ""),
+        ("left_hip", "kp_left_hip"),
+        ("right_hip", "kp_right_hip"),
+        ("left_knee", "kp_left_knee"),
+        ("right_knee", "kp_right_knee"),
+        ("left_ankle", "kp_left_ankle"),
+        ("right_ankle", "kp_right_ankle"),
+        ("left_heel", "kp_left_heel"),
+        ("right_heel", "kp_right_heel"),
+        ("left_foot_index", "kp_left_big_toe"),
+        ("right_foot_index", "kp_right_big_toe"),
+    ),
+    # BlazePose has no pelvis landmark: the root is the midpoint of the two hips (as COCO's)
+    root=("left_hip", "right_hip"),
+)
+
+LAYOUTS: dict[str, Layout] = {layout.name: layout for layout in (BODY25, COCO17, H36M17, HALPE26, BLAZEPOSE33)}
 
 # The four foot contact points (named once in jmocap.constants), re-exported here.
 CONTACT_SITES = _CONTACT_SITES
 
 
 def get_layout(layout: str | Layout) -> Layout:
-    """Return a :class:`Layout` by name (``body25``, ``coco17``, ``h36m17``) or pass one through."""
+    """Return a :class:`Layout` by name (``body25``, ``coco17``, ``h36m17``, ``halpe26``,
+    ``blazepose33``) or pass one through."""
     if isinstance(layout, Layout):
         return layout
     try:
@@ -210,7 +273,7 @@ def all_keypoint_sites() -> tuple[str, ...]:
     """Every site named by any layout, in first-seen order."""
     seen: dict[str, None] = {}
     for layout in LAYOUTS.values():
-        seen.update(dict.fromkeys(layout.sites))
+        seen.update(dict.fromkeys(s for s in layout.sites if s))
     return tuple(seen)
 
 
@@ -320,8 +383,10 @@ def conversion(src: str | Layout, dst: str | Layout) -> Conversion:
     """The :class:`Conversion` from ``src`` to ``dst`` (any two layouts: joints are matched by the
     character's sites)."""
     src, dst = get_layout(src), get_layout(dst)
-    where = {s: i for i, s in enumerate(src.sites)}
-    index = tuple(where.get(s, -1) for s in dst.sites)
+    if src.name == dst.name:  # every joint to itself, those without a site included
+        return Conversion(src, dst, tuple(range(src.num_joints)), ())
+    where = {s: i for i, s in enumerate(src.sites) if s}  # joints without a site match nothing
+    index = tuple(where.get(s, -1) if s else -1 for s in dst.sites)
     derived = []
     for j, s in enumerate(dst.sites):
         if index[j] < 0 and s in MIDPOINT_SITES:

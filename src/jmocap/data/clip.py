@@ -11,7 +11,7 @@ key                   dtype       shape       meaning
 ====================  ==========  ==========  ===============================================
 format                str         ()          ``"jmocap-clip-1"``
 name                  str         ()          clip name
-layout                str         ()          ``body25`` | ``coco17`` | ``h36m17`` | ``halpe26``
+layout                str         ()          ``body25`` | ``coco17`` | ``h36m17`` | ``halpe26`` | ``blazepose33``
 fps                   float64     ()          frames per second
 keypoints             float32     (T, J, 3)   x, y pixels, confidence in [0, 1] (0 = missing,
                                               then x = y = 0)

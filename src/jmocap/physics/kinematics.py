@@ -142,8 +142,10 @@ def site_positions(model: Model, q: Array, site_ids=None, *, kin: Kinematics | N
 
 
 def keypoints(model: Model, q: Array, layout: str | Layout, *, kin: Kinematics | None = None) -> Array:
-    """3D keypoints (J, 3) of a layout (``body25``, ``coco17``, ``h36m17``, ``halpe26``) in world frame."""
+    """3D keypoints (J, 3) of a layout (``body25``, ``coco17``, ``h36m17``, ``halpe26``) in world
+    frame; a layout with joints that are no site of the character (``blazepose33``) raises."""
     layout = get_layout(layout)
+    layout.require_sites("3D keypoints")
     return site_positions(model, q, model.site_ids(layout.sites), kin=kin)
 
 

@@ -1,5 +1,8 @@
 """BlazePose's 33 landmarks -> OpenPose BODY_25, the layout of jmocap's shipped weights.
 
+The mapping is :data:`jmocap.layouts.BLAZEPOSE33`'s conversion to BODY_25 (joints matched by the
+character's sites, :func:`jmocap.layouts.conversion`), the one any ``blazepose33`` clip gets:
+
 Direct: nose, eyes (BlazePose's eye centres), ears, shoulders, elbows, wrists, hips, knees,
 ankles, heels; BigToe = BlazePose's foot index (the tip of the foot). Derived: Neck = the
 mid-point of the shoulders, MidHip = the mid-point of the hips (confidence: the smaller of the
@@ -18,54 +21,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from jmocap.layouts import BODY25
-from jmocap.video.blazepose import BLAZEPOSE_NAMES
+from jmocap.layouts import BLAZEPOSE33, BODY25, conversion
 
-__all__ = ["BODY25_FROM_BLAZEPOSE", "to_body25"]
+__all__ = ["to_body25"]
 
-#: BODY_25 joint -> the BlazePose landmark(s) it is made of (two: their mid-point; none: missing)
-BODY25_FROM_BLAZEPOSE: dict[str, tuple[str, ...]] = {
-    "Nose": ("nose",),
-    "Neck": ("left_shoulder", "right_shoulder"),
-    "RShoulder": ("right_shoulder",),
-    "RElbow": ("right_elbow",),
-    "RWrist": ("right_wrist",),
-    "LShoulder": ("left_shoulder",),
-    "LElbow": ("left_elbow",),
-    "LWrist": ("left_wrist",),
-    "MidHip": ("left_hip", "right_hip"),
-    "RHip": ("right_hip",),
-    "RKnee": ("right_knee",),
-    "RAnkle": ("right_ankle",),
-    "LHip": ("left_hip",),
-    "LKnee": ("left_knee",),
-    "LAnkle": ("left_ankle",),
-    "REye": ("right_eye",),
-    "LEye": ("left_eye",),
-    "REar": ("right_ear",),
-    "LEar": ("left_ear",),
-    "LBigToe": ("left_foot_index",),
-    "LSmallToe": (),
-    "LHeel": ("left_heel",),
-    "RBigToe": ("right_foot_index",),
-    "RSmallToe": (),
-    "RHeel": ("right_heel",),
-}
-assert tuple(BODY25_FROM_BLAZEPOSE) == BODY25.joints
+_CONVERSION = conversion(BLAZEPOSE33, BODY25)
 
 
 def to_body25(points, confidence) -> np.ndarray:
     """BODY_25 keypoints (..., 25, 3) (x, y pixels, confidence; missing: 0, 0, 0) from BlazePose
-    points (..., >=33, 2) and per-landmark confidences (..., >=33) in [0, 1]."""
-    P = np.asarray(points, np.float64)
-    C = np.asarray(confidence, np.float64)
-    out = np.zeros(P.shape[:-2] + (BODY25.num_joints, 3))
-    for j, src in enumerate(BODY25_FROM_BLAZEPOSE.values()):
-        if not src:
-            continue
-        ids = [BLAZEPOSE_NAMES.index(s) for s in src]
-        out[..., j, :2] = P[..., ids, :].mean(-2)
-        out[..., j, 2] = C[..., ids].min(-1)
-    ok = (out[..., 2] > 0) & np.isfinite(out).all(-1)
-    out[~ok] = 0.0
-    return out.astype(np.float32)
+    points (..., >=33, 2) and per-landmark confidences (..., >=33) in [0, 1]; a landmark that is
+    not finite counts as missing."""
+    P = np.asarray(points, np.float64)[..., :33, :]
+    C = np.asarray(confidence, np.float64)[..., :33]
+    ok = (C > 0) & np.isfinite(P).all(-1) & np.isfinite(C)
+    kp = np.where(ok[..., None], np.concatenate([P, C[..., None]], -1), 0.0)
+    return _CONVERSION.keypoints(kp)

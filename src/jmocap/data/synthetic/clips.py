@@ -160,6 +160,7 @@ def generate_clip_and_character(seed: int, index: int = 0, config: SynthConfig =
     """:func:`generate_clip` and the :class:`~jmocap.data.synthetic.character.Character` whose
     model its ground truth ``gt_q`` is a motion of (the synthetic IMUs are computed on it)."""
     layout = get_layout(config.layout)
+    layout.require_sites("synthesising a clip")  # every 2D keypoint is a projected site
     kinds = tuple(config.kinds) if config.kinds else (
         TERRAIN_WALK_KINDS if config.terrain else EXTENDED_KINDS if config.extended else CLASSIC_KINDS)
     for k in kinds:
