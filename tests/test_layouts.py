@@ -33,7 +33,7 @@ def sites_at_poses():
         mujoco.mj_kinematics(mj, d)
         for name, lay in LAYOUTS.items():
             ids = [mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, s) if s else -1 for s in lay.sites]
-            assert all(i >= 0 for i, s in zip(ids, lay.sites) if s), name  # every named site exists
+            assert all(i >= 0 for i, s in zip(ids, lay.sites, strict=True) if s), name  # every named site exists
             # a joint without a site (BlazePose's face corners and fingers): NaN, never a position
             out[name].append(np.where(np.array(ids)[:, None] >= 0, d.site_xpos[ids], np.nan))
     return {k: np.array(v) for k, v in out.items()}

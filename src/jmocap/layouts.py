@@ -47,7 +47,7 @@ class Layout:
     def require_sites(self, what: str) -> None:
         """Raise ``ValueError`` naming ``what`` unless :attr:`sited`."""
         if not self.sited:
-            missing = [j for j, s in zip(self.joints, self.sites) if not s]
+            missing = [j for j, s in zip(self.joints, self.sites, strict=True) if not s]
             raise ValueError(f"{what} needs a character site for every joint; layout {self.name!r} has none for "
                              f"{', '.join(missing)} (use body25, or convert: Clip.to_layout)")
 
