@@ -2,7 +2,8 @@
 majority voting on a hand-worked example, the feature normalisation on hand-made poses (root,
 body size, edge and padded-frame replication), invariance to 2D translation and to uniform image
 scaling, the horizontal flip of keypoints, features and labels, jit + vmap over padded clips,
-and the shipped weights on freshly generated synthetic clips against the majority class."""
+and the shipped weights on freshly generated synthetic clips against the majority class; jmocap's
+temporal refiner over the MLP: its receptive field, padding, batching and mirror symmetry."""
 
 from __future__ import annotations
 
@@ -289,3 +290,58 @@ def test_window_is_read_from_the_weights_and_other_windows_are_refused_by_the_me
         ce.contact_params({"contacts": wide})
     with pytest.raises(ValueError, match="odd"):
         ce.contact_features(kp, np.array([640.0, 480.0]), np.ones(20, bool), "body25", 8)
+
+
+# ---------------------------------------------------------------------------------------
+# the temporal refiner (jmocap.nets.ContactTCN over the MLP's outputs)
+# ---------------------------------------------------------------------------------------
+
+
+def test_refiner_reads_its_receptive_field_and_ignores_padding():
+    """Kernel 3 and dilations 1..16 read 2 (1 + 2 + 4 + 8 + 16) = 62 frames: an input change at
+    frame 50 moves the outputs of frames 19..81 and no other; zero padding beyond a clip changes
+    nothing (padded frames are zeros at every convolution's input, as 'SAME' pads the ends)."""
+    r = ce.init_refiner_params(jax.random.PRNGKey(0), 56)
+    assert ce.tcn_config(r) == {"width": 64, "kernel": 3, "dilations": (1, 2, 4, 8, 16)}
+    x = np.asarray(jax.random.normal(jax.random.PRNGKey(1), (120, 56)))
+    mask = np.ones(120, bool)
+    logits = jax.jit(ce.refiner_logits)
+    a = np.asarray(logits(r, x, mask))
+    x2 = x.copy()
+    x2[50] += 1.0
+    moved = np.abs(np.asarray(logits(r, x2, mask)) - a).max(-1) > 1e-6
+    assert moved[19:82].all() and not moved[:19].any() and not moved[82:].any()
+    # the same clip padded (with garbage behind the mask) gives the same logits on its frames
+    pad = np.concatenate([x, 100.0 * np.ones((40, 56), np.float32)])
+    b = np.asarray(logits(r, pad, np.arange(160) < 120))
+    np.testing.assert_allclose(b[:120], a, atol=2e-5)
+
+
+def test_refined_estimate_batches_and_is_mirror_symmetric(params, clips):
+    r = ce.default_refiner_params()
+    a, b = clips[0].slice(0, 30), clips[1]
+    batch = jax.tree.map(lambda *x: np.stack(x), ClipInputs.from_clip(a, 48), ClipInputs.from_clip(b, 48))
+    est = jax.jit(jax.vmap(lambda p, r, inp: ce.estimate_contacts(p, inp, refiner=r), in_axes=(None, None, 0)))
+    got = np.asarray(est(params, r, batch))
+    one = jax.jit(lambda p, r, inp: ce.estimate_contacts(p, inp, refiner=r))
+    for i, c in enumerate((a, b)):
+        own = np.asarray(one(params, r, ClipInputs.from_clip(c)))
+        np.testing.assert_allclose(got[i, : c.num_frames], own, atol=1e-5)
+        np.testing.assert_array_equal(got[i, c.num_frames:], 0.0)
+        assert np.all((own >= 0) & (own <= 1))
+    inp = ClipInputs.from_clip(b, 48)
+    flipped = inp.replace(keypoints=ce.flip_keypoints(inp.keypoints, inp.image_size))
+    np.testing.assert_allclose(np.asarray(ce.flip_contacts(one(params, r, flipped))), got[1], atol=1e-5)
+
+
+def test_shipped_refiner_loads_and_beats_the_majority_class(params, clips):
+    r = ce.default_refiner_params()
+    assert all(np.asarray(x).dtype == np.float32 for x in jax.tree.leaves(r))
+    assert ce.tcn_config(r)["dilations"] == (1, 2, 4, 8, 16) and ce.default_refiner_params() is r
+    assert ce.refiner_params({"contact_refiner": "own"}) == "own" and ce.refiner_params({}) is r
+    est = jax.jit(lambda p, r, inp: ce.estimate_contacts(p, inp, refiner=r))
+    pred = np.concatenate([np.asarray(est(params, r, ClipInputs.from_clip(c, 48)))[: c.num_frames]
+                           for c in clips]) > 0.5
+    gt = np.concatenate([c.gt_contacts for c in clips]) > 0.5
+    majority = np.broadcast_to(gt.mean(0) > 0.5, gt.shape)
+    assert _f1(pred, gt) > _f1(majority, gt) and np.mean(pred == gt) > np.mean(majority == gt)

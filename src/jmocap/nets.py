@@ -15,6 +15,7 @@
 * :class:`ContactMLP` — Rempe et al. (2020)'s foot-contact classifier (Sec. 3.2, Appendix A.2):
   an MLP on a window of lower-body 2D keypoints, with batch norm (running statistics in the
   ``batch_stats`` collection, the one network here that has them).
+* :class:`ContactTCN` — jmocap's temporal refiner of those contacts over the whole clip.
 
 Widths are configurable (:class:`NetConfig`); the defaults are narrower than the paper's 1024 so
 that training fits a 2-core CPU (docs/method.md). Everything is a pure function of
@@ -159,8 +160,11 @@ class ContactMLP(nn.Module):
     dropout_before: int = 2  # index of the hidden layer the dropout precedes (the third)
     momentum: float = 0.9
 
+    #: return ``(last hidden layer, logits)`` instead of the logits (the contact refiner's input)
+    return_hidden: bool = False
+
     @nn.compact
-    def __call__(self, x: jnp.ndarray, *, train: bool = False) -> jnp.ndarray:
+    def __call__(self, x: jnp.ndarray, *, train: bool = False):
         h = x
         for i, w in enumerate(self.widths):
             if i == self.dropout_before:
@@ -168,7 +172,39 @@ class ContactMLP(nn.Module):
             h = nn.Dense(w)(h)
             h = nn.BatchNorm(use_running_average=not train, momentum=self.momentum)(h)
             h = nn.relu(h)
-        return nn.Dense(self.out)(h)
+        logits = nn.Dense(self.out)(h)
+        return (h, logits) if self.return_hidden else logits
+
+
+class ContactTCN(nn.Module):
+    """A temporal refiner of per-frame contact estimates over a whole clip (jmocap's addition to
+    Rempe et al.'s estimator: docs/method.md, "The temporal refiner").
+
+    Input ``x`` (..., T, C) per frame (the contact MLP's window probabilities, vote and last
+    hidden layer) and ``mask`` (..., T) real frames; output the contact logits (..., T, 4). A
+    linear embedding, then residual blocks of non-causal dilated 1D convolutions (kernel
+    ``kernel``, dilations ``dilations``: with (1, 2, 4, 8, 16) and kernel 3 every output frame
+    reads 31 frames on each side, about a second at 30 fps: a gait cycle), each
+    LayerNorm -> ReLU -> Conv -> dropout with a skip, and a linear head. Padded frames are zero
+    at every convolution's input, so a clip's result does not depend on how far it is padded
+    (tested); layer norm, not batch norm, so it stays a pure function of ``(params, x, mask)``.
+    """
+
+    width: int = 64
+    dilations: tuple[int, ...] = (1, 2, 4, 8, 16)
+    kernel: int = 3
+    dropout: float = 0.1
+    out: int = 4
+
+    @nn.compact
+    def __call__(self, x: jnp.ndarray, mask: jnp.ndarray, *, train: bool = False) -> jnp.ndarray:
+        m = jnp.asarray(mask, x.dtype)[..., None]
+        h = nn.Dense(self.width)(x * m)
+        for d in self.dilations:
+            r = nn.relu(nn.LayerNorm()(h)) * m
+            r = nn.Conv(self.width, (self.kernel,), kernel_dilation=(d,), padding="SAME")(r)
+            h = h + nn.Dropout(self.dropout, deterministic=not train)(r)
+        return nn.Dense(self.out)(nn.relu(nn.LayerNorm()(h)))
 
 
 def rot6d_to_mat(x: jnp.ndarray) -> jnp.ndarray:

@@ -100,7 +100,9 @@ class TrajOptConfig(KinematicConfig):
     memory: int = static(10)  # L-BFGS history
     window: int = static(0)  # frames per window (0: the whole clip is one window)
     overlap: int = static(32)  # frames shared by consecutive windows (cross-faded)
-    contact_source: str = static("mlp")  # "mlp" (Rempe's estimator) or "tpnet" (TPNet's head)
+    # "refined" (Rempe's estimator and jmocap's temporal refiner over it), "mlp" (Rempe's voted
+    # estimator alone) or "tpnet" (TPNet's head)
+    contact_source: str = static("refined")
     # fit on the clip's terrain (its scene: every height above the boxes and the floor) or, False,
     # on the floor z = 0 whatever the clip carries (the ablation trajopt_no_scene)
     use_scene: bool = static(True)
@@ -911,11 +913,12 @@ def contact_labels(params: dict, inputs: ClipInputs, tpnet_prob: Array, config: 
     (:func:`jmocap.methods.contact_estimation.window_probabilities`)."""
     if config.contact_source == "tpnet":
         return tpnet_prob
-    if config.contact_source == "mlp":
+    if config.contact_source in ("mlp", "refined"):
         from jmocap.methods import contact_estimation as CE
 
-        return CE.estimate_contacts(CE.contact_params(params), inputs, config.layout, depth=depth)
-    raise ValueError(f"unknown contact_source {config.contact_source!r} (mlp, tpnet)")
+        refiner = CE.refiner_params(params) if config.contact_source == "refined" else None
+        return CE.estimate_contacts(CE.contact_params(params), inputs, config.layout, depth=depth, refiner=refiner)
+    raise ValueError(f"unknown contact_source {config.contact_source!r} (refined, mlp, tpnet)")
 
 
 def problem(model: Model, inputs: ClipInputs, q_hat: Array, contacts: Array, config: TrajOptConfig) -> Problem:
@@ -1156,6 +1159,9 @@ METHOD = register(
 
 register_variant(Variant("trajopt_tpnet_contacts", "trajopt", {"contact_source": "tpnet"},
                          "trajopt with TPNet's contact head instead of Rempe et al.'s estimator (ablation)"))
+register_variant(Variant("trajopt_voted_contacts", "trajopt", {"contact_source": "mlp"},
+                         "trajopt with Rempe et al.'s voted contact MLP alone, without jmocap's temporal "
+                         "refiner (ablation)"))
 register_variant(Variant("trajopt_no_scene", "trajopt", {"use_scene": False},
                          "trajopt on the floor z = 0 whatever terrain the clip carries (ablation of the "
                          "interaction term, issue 21)"))

@@ -1,0 +1,279 @@
+"""Train the temporal contact refiner (:class:`jmocap.nets.ContactTCN`) over the shipped contact MLP.
+
+    .venv/bin/python experiments/train_contact_refiner.py [--ship]
+
+The contact MLP (Rempe et al. 2020, Sec. 3.2; ``experiments/train_contacts.py``) reads 9 frames
+and votes over 5; the refiner reads the MLP's outputs over about a second on each side (a gait
+cycle) and classifies every frame again (docs/method.md, "The temporal refiner").
+
+1. Generates its training archives if they are missing or short (resumable, deterministic):
+   ``jmocap data synth --out data/refine_cls --clips 240 --seed 17 --physics --frames-per-clip
+   90:180`` and the same with ``--extended --seed 18`` in ``data/refine_ext``. *Fresh* seeds:
+   the MLP was trained on seeds 7 and 8, and its outputs on its own training clips are better
+   than on clips it never saw, so a refiner trained on them would learn to trust it too much.
+   Longer clips than the MLP's (60-150 frames) because the refiner reads more context.
+2. Splits every archive by clip into training and validation (``--val-fraction``); per clip
+   (and its horizontal mirror image, left/right labels swapped) the refiner's input sequence
+   (:func:`jmocap.methods.contact_estimation.refiner_inputs` of the shipped MLP) and the
+   force-and-floor labels.
+3. Trains with binary cross-entropy over the real frames, AdamW (``--lr``, cosine decay over
+   ``--max-epochs``), batch ``--batch`` clips, dropout 0.1; early stopping on the validation
+   loss (``--patience``), the best epoch kept. Resumable (``RUN/checkpoint.msgpack`` after
+   every epoch, ``RUN/log.jsonl``).
+4. Reports, on its validation clips and on every ``--eval`` archive, the shipped voted MLP
+   against the refined estimate (both with the mirror image, ``> 0.5`` = contact): F1,
+   balanced accuracy, accuracy, precision, recall; ``RUN/summary.json``. ``--ship`` writes
+   ``src/jmocap/assets/contact_refiner.msgpack`` (float16) and ``contact_refiner.json``.
+
+Never on the held-out archives (``data/heldout``, ``data/heldout_ext``, seeds 123 and 2026):
+refused as training data; report them with ``experiments/eval_contacts.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import train_contacts as TC  # noqa: E402  (load_clips, split, refuse_heldout, ensure_archive)
+
+ROOT = TC.ROOT
+log = TC.log
+#: the training archives: (folder, clips, seed, extended)
+ARCHIVES = (("data/refine_cls", 240, 17, False), ("data/refine_ext", 240, 18, True))
+FRAMES = "90:180"
+
+
+def sequences(clips, flip: bool):
+    """Refiner inputs (N, L, C), labels (N, L, 4) and masks (N, L) of the clips (and their mirror
+    images), all padded to one length ``L`` (a multiple of 64)."""
+    import jax
+
+    from jmocap.methods import contact_estimation as ce
+
+    mlp = ce.default_contact_params()
+    L = max(TC._bucket(c.num_frames) for c in clips)
+
+    @jax.jit
+    def one(kp, size, mask):
+        f = ce.contact_features(kp, size, mask)
+        return ce.refiner_inputs(mlp, f, mask), ce.refiner_inputs(mlp, ce.flip_features(f), mask)
+
+    X, Y, M = [], [], []
+    for c in clips:
+        T = c.num_frames
+        kp = np.zeros((L, *c.keypoints.shape[1:]), np.float32)
+        kp[:T] = c.to_layout("body25").keypoints if c.layout != "body25" else c.keypoints
+        mask = np.arange(L) < T
+        y = np.zeros((L, 4), np.float32)
+        y[:T] = np.asarray(c.gt_contacts) > 0.5
+        a, b = one(kp, np.asarray(c.image_size, np.float32), mask)
+        X.append(np.asarray(a))
+        Y.append(y)
+        M.append(mask)
+        if flip:
+            X.append(np.asarray(b))
+            Y.append(y[:, list(ce.CONTACT_FLIP)])
+            M.append(mask)
+    return np.stack(X), np.stack(Y), np.stack(M).astype(np.float32)
+
+
+def make_steps(lr_schedule, weight_decay: float):
+    import jax
+    import jax.numpy as jnp
+    import optax
+
+    from jmocap.methods import contact_estimation as ce
+
+    tx = optax.adamw(lr_schedule, weight_decay=weight_decay)
+
+    def loss_fn(p, x, y, m, key):
+        keys = jax.random.split(key, x.shape[0])
+        logits = jax.vmap(lambda xi, mi, ki: ce.refiner_logits(p, xi, mi, train=True, rngs={"dropout": ki}))(x, m, keys)
+        per = optax.sigmoid_binary_cross_entropy(logits, y) * m[..., None]
+        return jnp.sum(per) / jnp.maximum(4.0 * jnp.sum(m), 1.0)
+
+    @jax.jit
+    def train_step(p, opt, x, y, m, key):
+        loss, g = jax.value_and_grad(loss_fn)(p, x, y, m, key)
+        upd, opt = tx.update(g, opt, p)
+        return optax.apply_updates(p, upd), opt, loss
+
+    @jax.jit
+    def eval_batch(p, x, y, m):
+        logits = jax.vmap(lambda xi, mi: ce.refiner_logits(p, xi, mi))(x, m)
+        per = optax.sigmoid_binary_cross_entropy(logits, y) * m[..., None]
+        pr, g, ok = logits > 0, y > 0.5, m[..., None] > 0
+        tp, fp, fn = jnp.sum(pr & g & ok), jnp.sum(pr & ~g & ok), jnp.sum(~pr & g & ok)
+        return jnp.sum(per), 4.0 * jnp.sum(m), jnp.array([tp, fp, fn])
+
+    return tx, train_step, eval_batch
+
+
+def evaluate_arrays(eval_batch, p, X, Y, M):
+    loss, n, counts = 0.0, 0.0, np.zeros(3)
+    for i in range(0, len(X), 64):
+        a, b, c = eval_batch(p, X[i:i + 64], Y[i:i + 64], M[i:i + 64])
+        loss, n, counts = loss + float(a), n + float(b), counts + np.asarray(c, float)
+    tp, fp, fn = counts
+    return loss / max(n, 1.0), 100.0 * 2 * tp / max(2 * tp + fp + fn, 1.0)
+
+
+def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
+    import jax
+    import optax
+    from flax import serialization
+
+    from jmocap.io import atomic_write
+    from jmocap.methods import contact_estimation as ce
+
+    steps_per_epoch = max(1, len(Xtr) // args.batch)
+    schedule = optax.cosine_decay_schedule(args.lr, steps_per_epoch * args.max_epochs, alpha=0.05)
+    tx, train_step, eval_batch = make_steps(schedule, args.weight_decay)
+    p = ce.init_refiner_params(jax.random.PRNGKey(args.seed), Xtr.shape[-1], args.width, args.blocks)
+    state = {"params": p, "opt": tx.init(p), "epoch": 0, "best_val": float("inf"), "best_epoch": -1,
+             "bad_epochs": 0, "best": p, "done": False}
+    ckpt = run / "checkpoint.msgpack"
+    if ckpt.exists():
+        state = serialization.from_bytes(state, ckpt.read_bytes())
+        state["done"] = bool(state["done"])
+        log(f"resumed {ckpt} at epoch {int(state['epoch'])} (best val {float(state['best_val']):.4f})")
+    key = jax.random.PRNGKey(args.seed + 1)
+    with open(run / "log.jsonl", "a") as logf:
+        while not state["done"] and int(state["epoch"]) < args.max_epochs:
+            ep = int(state["epoch"])
+            t0 = time.time()
+            order = np.random.default_rng([args.seed, ep]).permutation(len(Xtr))
+            p, opt, losses = state["params"], state["opt"], []
+            for s in range(steps_per_epoch):
+                idx = np.sort(order[s * args.batch:(s + 1) * args.batch])
+                p, opt, loss = train_step(p, opt, Xtr[idx], Ytr[idx], Mtr[idx], jax.random.fold_in(key, ep * 100003 + s))
+                losses.append(loss)
+            train_loss = float(np.mean(jax.device_get(losses)))
+            val_loss, val_f1 = evaluate_arrays(eval_batch, p, Xva, Yva, Mva)
+            improved = val_loss < float(state["best_val"]) - 1e-5
+            state.update(params=p, opt=opt, epoch=ep + 1)
+            if improved:
+                state.update(best_val=val_loss, best_epoch=ep, bad_epochs=0, best=p)
+            else:
+                state["bad_epochs"] = int(state["bad_epochs"]) + 1
+            state["done"] = int(state["bad_epochs"]) >= args.patience
+            rec = {"epoch": ep, "train_loss": train_loss, "val_loss": val_loss, "val_f1": val_f1,
+                   "best_epoch": int(state["best_epoch"]), "seconds": round(time.time() - t0, 2)}
+            logf.write(json.dumps(rec) + "\n")
+            logf.flush()
+            log(f"epoch {ep}: train {train_loss:.4f} val {val_loss:.4f} val F1 {val_f1:.2f} "
+                f"({rec['seconds']} s){' *' if improved else ''}")
+            atomic_write(ckpt, serialization.to_bytes(state))
+    return jax.device_get(state["best"]), int(state["best_epoch"]), int(state["epoch"])
+
+
+def scores(pred: np.ndarray, gt: np.ndarray) -> dict:
+    """Pooled F1, balanced accuracy, accuracy, precision, recall (%) of boolean (N, 4) arrays."""
+    tp, fp = np.sum(pred & gt), np.sum(pred & ~gt)
+    fn, tn = np.sum(~pred & gt), np.sum(~pred & ~gt)
+    prec, rec = tp / max(tp + fp, 1), tp / max(tp + fn, 1)
+    spec = tn / max(tn + fp, 1)
+    return {"f1": round(100 * 2 * tp / max(2 * tp + fp + fn, 1), 2),
+            "balanced_accuracy": round(100 * (rec + spec) / 2, 2),
+            "accuracy": round(100 * (tp + tn) / max(tp + tn + fp + fn, 1), 2),
+            "precision": round(100 * prec, 2), "recall": round(100 * rec, 2)}
+
+
+def compare(refiner, clips) -> dict:
+    """The shipped voted MLP against the refined estimate on the clips (mirror image on, ``> 0.5``)."""
+    import jax
+
+    from jmocap.inputs import ClipInputs
+    from jmocap.methods import contact_estimation as ce
+
+    mlp = ce.default_contact_params()
+    voted = jax.jit(lambda inp: ce.estimate_contacts(mlp, inp))
+    refined = jax.jit(lambda inp: ce.estimate_contacts(mlp, inp, refiner=refiner))
+    a, b, g = [], [], []
+    for c in clips:
+        inp = ClipInputs.from_clip(c, TC._bucket(c.num_frames))
+        a.append(np.asarray(voted(inp))[: c.num_frames] > 0.5)
+        b.append(np.asarray(refined(inp))[: c.num_frames] > 0.5)
+        g.append(np.asarray(c.gt_contacts) > 0.5)
+    a, b, g = np.concatenate(a), np.concatenate(b), np.concatenate(g)
+    return {"clips": len(clips), "frames": int(len(g)), "voted_mlp": scores(a, g), "refined": scores(b, g)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", default="runs/contact_refiner")
+    ap.add_argument("--workers", type=int, default=2, help="generation processes")
+    ap.add_argument("--val-fraction", type=float, default=0.15)
+    ap.add_argument("--width", type=int, default=64)
+    ap.add_argument("--blocks", type=int, default=5, help="dilated convolutions (dilations 1, 2, 4, ...)")
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--weight-decay", type=float, default=1e-4)
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--max-epochs", type=int, default=60)
+    ap.add_argument("--patience", type=int, default=8)
+    ap.add_argument("--seed", type=int, default=17)
+    ap.add_argument("--eval", nargs="*", default=[], metavar="ARCHIVE",
+                    help="validation archives to report at the end (e.g. data/val data/val_walk data/val_flight)")
+    ap.add_argument("--ship", action="store_true", help="copy the weights into the package (float16)")
+    args = ap.parse_args(argv)
+    run = ROOT / args.run
+    run.mkdir(parents=True, exist_ok=True)
+    t_start = time.time()
+    tr, va, used = [], [], []
+    for folder, n, seed, extended in ARCHIVES:
+        TC.refuse_heldout(ROOT / folder, seed)
+        TC.ensure_archive(ROOT / folder, n, seed, FRAMES, args.workers, extended)
+        clips = TC.load_clips(ROOT / folder, n)
+        a, b = TC.split(clips, args.val_fraction, seed)
+        tr, va = tr + a, va + b
+        used.append({"path": folder, "clips": n, "seed": seed, "extended": extended, "frames_per_clip": FRAMES,
+                     "frames": int(sum(c.num_frames for c in clips))})
+    t0 = time.time()
+    Xtr, Ytr, Mtr = sequences(tr, flip=True)
+    Xva, Yva, Mva = sequences(va, flip=False)
+    feat_s = time.time() - t0
+    log(f"{len(tr)} training clips (x2 mirrored), {len(va)} validation; inputs {Xtr.shape} ({feat_s:.0f} s)")
+    t0 = time.time()
+    best, best_epoch, epochs = train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run)
+    train_s = time.time() - t0
+
+    from jmocap.weights import save_params
+
+    save_params(run / "contact_refiner.msgpack", best)
+    report = {"validation_split": compare(best, va)}
+    from jmocap.data.archive import Archive
+
+    for e in args.eval:
+        TC.refuse_heldout(ROOT / e, json.loads((ROOT / e / "archive.json").read_text()).get("seed"))
+        with Archive(ROOT / e) as arch:
+            report[e] = compare(best, [arch.load(n) for n in arch.names()])
+    for k, v in report.items():
+        log(f"{k}: voted MLP {v['voted_mlp']}  refined {v['refined']}")
+    summary = {
+        "command": "python experiments/train_contact_refiner.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "archives": used, "contact_mlp": "src/jmocap/assets/contact_mlp.msgpack (shipped)",
+        "width": args.width, "blocks": args.blocks,
+        "hyper": {k: getattr(args, k) for k in ("lr", "weight_decay", "batch", "max_epochs", "patience", "val_fraction")},
+        "best_epoch": best_epoch, "epochs_run": epochs, "report": report,
+        "seconds": {"inputs": round(feat_s, 1), "train": round(train_s, 1), "total_this_call": round(time.time() - t_start, 1)},
+    }
+    (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if args.ship:
+        import jax
+
+        asset = ROOT / "src/jmocap/assets/contact_refiner.msgpack"
+        save_params(asset, jax.tree.map(lambda x: np.asarray(x, np.float16), best))
+        (ROOT / "src/jmocap/assets/contact_refiner.json").write_text(json.dumps(summary, indent=2) + "\n")
+        log(f"shipped {asset} ({asset.stat().st_size / 1e6:.2f} MB)")
+    log(f"done in {time.time() - t_start:.0f} s this call")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
