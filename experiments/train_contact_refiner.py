@@ -83,7 +83,7 @@ def sequences(clips, flip: bool):
     return np.stack(X), np.stack(Y), np.stack(M).astype(np.float32)
 
 
-def make_steps(lr_schedule, weight_decay: float):
+def make_steps(lr_schedule, weight_decay: float, flight_weight: float = 1.0):
     import jax
     import jax.numpy as jnp
     import optax
@@ -95,8 +95,11 @@ def make_steps(lr_schedule, weight_decay: float):
     def loss_fn(p, x, y, m, key):
         keys = jax.random.split(key, x.shape[0])
         logits = jax.vmap(lambda xi, mi, ki: ce.refiner_logits(p, xi, mi, train=True, rngs={"dropout": ki}))(x, m, keys)
-        per = optax.sigmoid_binary_cross_entropy(logits, y) * m[..., None]
-        return jnp.sum(per) / jnp.maximum(4.0 * jnp.sum(m), 1.0)
+        # flight frames (no point in contact: a run's or jump's airborne instants) weigh
+        # flight_weight: rare, and every force on them is wrong
+        w = m * jnp.where(jnp.any(y > 0.5, -1), 1.0, flight_weight)
+        per = optax.sigmoid_binary_cross_entropy(logits, y) * w[..., None]
+        return jnp.sum(per) / jnp.maximum(4.0 * jnp.sum(w), 1.0)
 
     @jax.jit
     def train_step(p, opt, x, y, m, key):
@@ -134,7 +137,7 @@ def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
 
     steps_per_epoch = max(1, len(Xtr) // args.batch)
     schedule = optax.cosine_decay_schedule(args.lr, steps_per_epoch * args.max_epochs, alpha=0.05)
-    tx, train_step, eval_batch = make_steps(schedule, args.weight_decay)
+    tx, train_step, eval_batch = make_steps(schedule, args.weight_decay, args.flight_weight)
     p = ce.init_refiner_params(jax.random.PRNGKey(args.seed), Xtr.shape[-1], args.width, args.blocks)
     state = {"params": p, "opt": tx.init(p), "epoch": 0, "best_val": float("inf"), "best_epoch": -1,
              "bad_epochs": 0, "best": p, "done": False}
@@ -215,6 +218,8 @@ def main(argv=None) -> int:
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--weight-decay", type=float, default=1e-4)
     ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--flight-weight", type=float, default=1.0,
+                    help="loss weight of flight frames (no point in contact) against 1 for the others")
     ap.add_argument("--max-epochs", type=int, default=60)
     ap.add_argument("--patience", type=int, default=8)
     ap.add_argument("--seed", type=int, default=17)
@@ -259,7 +264,8 @@ def main(argv=None) -> int:
         "command": "python experiments/train_contact_refiner.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "archives": used, "contact_mlp": "src/jmocap/assets/contact_mlp.msgpack (shipped)",
         "width": args.width, "blocks": args.blocks,
-        "hyper": {k: getattr(args, k) for k in ("lr", "weight_decay", "batch", "max_epochs", "patience", "val_fraction")},
+        "hyper": {k: getattr(args, k) for k in ("lr", "weight_decay", "batch", "flight_weight", "max_epochs", "patience",
+                                                "val_fraction")},
         "best_epoch": best_epoch, "epochs_run": epochs, "report": report,
         "seconds": {"inputs": round(feat_s, 1), "train": round(train_s, 1), "total_this_call": round(time.time() - t_start, 1)},
     }
