@@ -3,6 +3,7 @@
     .venv/bin/python experiments/bench_trajopt.py                     # 300-frame clips, batch 1 and 64
     .venv/bin/python experiments/bench_trajopt.py --frames 120 --batches 1 8   # a quick run
     .venv/bin/python experiments/bench_trajopt.py --pipeline --batches 1 64    # as jmocap reconstruct runs it
+    .venv/bin/python experiments/bench_trajopt.py --no-stages --batches 1 --against linesearch=backtracking
 
 ``--pipeline`` times the batch engine of ``jmocap reconstruct`` instead (:class:`jmocap.pipeline.Reconstructor`:
 the batch sharded over one host CPU device per core, ``--host-devices``), side by side with one
@@ -46,6 +47,9 @@ def main() -> None:
                     help="time jmocap reconstruct's batch engine with 1 and --host-devices devices")
     ap.add_argument("--host-devices", type=int, default=0, help="with --pipeline (0: one per CPU core)")
     ap.add_argument("--tile", type=int, default=None, help="with --pipeline: clips per tile (default: the engine's)")
+    ap.add_argument("--against", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="also time the default config with these changes, side by side (with --no-stages), "
+                         "and print its time as a ratio of the default's")
     args = ap.parse_args()
     if args.pipeline:
         return bench_pipeline(args)
@@ -56,6 +60,14 @@ def main() -> None:
     trajopt = get_method("trajopt")
     base = trajopt.make_config(trajopt.weights_config(default_config_fields()))
     variants = {"full": base}
+    if args.against:
+        if not args.no_stages:
+            raise SystemExit("--against needs --no-stages")
+        import json
+
+        changes = {k: json.loads(v) if v[:1] in "-0123456789[{tn" else v
+                   for k, v in (a.split("=", 1) for a in args.against)}
+        variants["against"] = base.replace(**changes)
     if not args.no_stages:
         variants.update({"no physics": base.replace(physics_iterations=0),
                          "no fit": base.replace(physics_iterations=0, kinematic_iterations=0,
@@ -86,6 +98,9 @@ def main() -> None:
         full = per["full"]
         if args.no_stages:
             print(f"| {B} | {compile_s - full * B:.0f} | {full:.2f} | | | |")
+            if "against" in per:
+                print(f"| {B} | with {' '.join(args.against)} | {per['against']:.2f} "
+                      f"| x{per['against'] / full:.2f} of the default | | |", flush=True)
             continue
         nophys, nofit = per["no physics"], per["no fit"]
         share = lambda x, full=full: f"{100 * x / full:.0f} %"  # noqa: E731
