@@ -404,8 +404,9 @@ def test_depth_track_holds_frames_with_few_keypoints():
     assert px[10:, seen].max() < 10.0, px[10:, seen].max()
 
 
-def test_lbfgs_reaches_the_minimum_of_an_ill_conditioned_quadratic():
-    """``trajopt.lbfgs`` (optax's L-BFGS with its zoom line search, in preconditioned variables,
+@pytest.mark.parametrize("linesearch", ["zoom", "backtracking"])
+def test_lbfgs_reaches_the_minimum_of_an_ill_conditioned_quadratic(linesearch):
+    """``trajopt.lbfgs`` (optax's L-BFGS with either line search, in preconditioned variables,
     the best iterate kept) reaches the closed-form minimiser x* = A^-1 b of a rotated quadratic
     whose curvatures span 1e4 (in 200 iterations: 60 leave 0.06, a diagonal preconditioner
     cannot undo a rotated spread), and reports the objective before and after."""
@@ -419,9 +420,11 @@ def test_lbfgs_reaches_the_minimum_of_an_ill_conditioned_quadratic():
     with x64():
         x0 = {"v": jnp.zeros(12)}
         scale = {"v": jnp.asarray(1.0 / np.sqrt(np.diag(A)))}
-        x, rep = jax.jit(lambda x0: TO.lbfgs(f, x0, 200, 10, scale))(x0)
+        x, rep = jax.jit(lambda x0: TO.lbfgs(f, x0, 200, 10, scale, linesearch))(x0)
     np.testing.assert_allclose(np.asarray(x["v"]), xstar, atol=1e-4)
     assert float(rep.final) < float(rep.initial) and int(rep.iterations) == 200
+    with pytest.raises(ValueError, match="unknown linesearch"):
+        TO.lbfgs(f, x0, 2, 10, scale, "wolfe")
 
 
 def test_a_clip_that_satisfies_the_physics_stays_put():
