@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import train_contacts as TC  # noqa: E402  (load_clips, split, refuse_heldout, ensure_archive)
+import train_contacts as TC  # noqa: E402  (load_clips, split, refuse_heldout, ensure_archive, evaluate_arrays)
 
 ROOT = TC.ROOT
 log = TC.log
@@ -118,15 +118,6 @@ def make_steps(lr_schedule, weight_decay: float, flight_weight: float = 1.0):
     return tx, train_step, eval_batch
 
 
-def evaluate_arrays(eval_batch, p, X, Y, M):
-    loss, n, counts = 0.0, 0.0, np.zeros(3)
-    for i in range(0, len(X), 64):
-        a, b, c = eval_batch(p, X[i:i + 64], Y[i:i + 64], M[i:i + 64])
-        loss, n, counts = loss + float(a), n + float(b), counts + np.asarray(c, float)
-    tp, fp, fn = counts
-    return loss / max(n, 1.0), 100.0 * 2 * tp / max(2 * tp + fp + fn, 1.0)
-
-
 def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
     import jax
     import optax
@@ -158,14 +149,9 @@ def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
                 p, opt, loss = train_step(p, opt, Xtr[idx], Ytr[idx], Mtr[idx], jax.random.fold_in(key, ep * 100003 + s))
                 losses.append(loss)
             train_loss = float(np.mean(jax.device_get(losses)))
-            val_loss, val_f1 = evaluate_arrays(eval_batch, p, Xva, Yva, Mva)
-            improved = val_loss < float(state["best_val"]) - 1e-5
+            val_loss, val_f1 = TC.evaluate_arrays(eval_batch, p, Xva, Yva, Mva, chunk=64)
             state.update(params=p, opt=opt, epoch=ep + 1)
-            if improved:
-                state.update(best_val=val_loss, best_epoch=ep, bad_epochs=0, best=p)
-            else:
-                state["bad_epochs"] = int(state["bad_epochs"]) + 1
-            state["done"] = int(state["bad_epochs"]) >= args.patience
+            improved = TC.early_stop(state, val_loss, ep, args.patience, p)
             rec = {"epoch": ep, "train_loss": train_loss, "val_loss": val_loss, "val_f1": val_f1,
                    "best_epoch": int(state["best_epoch"]), "seconds": round(time.time() - t0, 2)}
             logf.write(json.dumps(rec) + "\n")

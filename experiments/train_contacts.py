@@ -233,13 +233,28 @@ def make_steps(lr: float, weight_decay: float, noise: float, drop_max: float, sc
     return tx, train_step, eval_batch
 
 
-def evaluate_arrays(eval_batch, variables, X, Y, M):
+def evaluate_arrays(eval_batch, variables, X, Y, M, chunk: int = 2048):
+    """Mean loss and F1 (%) of ``eval_batch`` (returning the summed loss, its count and the
+    true-positive, false-positive and false-negative counts) over the arrays, in chunks."""
     loss, n, counts = 0.0, 0.0, np.zeros(3)
-    for i in range(0, len(X), 2048):
-        a, b, c = eval_batch(variables, X[i:i + 2048], Y[i:i + 2048], M[i:i + 2048])
+    for i in range(0, len(X), chunk):
+        a, b, c = eval_batch(variables, X[i:i + chunk], Y[i:i + chunk], M[i:i + chunk])
         loss, n, counts = loss + float(a), n + float(b), counts + np.asarray(c, float)
     tp, fp, fn = counts
     return loss / max(n, 1.0), 100.0 * 2 * tp / max(2 * tp + fp + fn, 1.0)
+
+
+def early_stop(state: dict, val_loss: float, epoch: int, patience: int, weights) -> bool:
+    """Early stopping on the validation loss: keep ``weights`` as the best when ``val_loss``
+    improves on the state's best by more than 1e-5 (then True), else count a bad epoch; the
+    state is done after ``patience`` bad epochs in a row."""
+    improved = val_loss < float(state["best_val"]) - 1e-5
+    if improved:
+        state.update(best_val=val_loss, best_epoch=epoch, bad_epochs=0, best=weights)
+    else:
+        state["bad_epochs"] = int(state["bad_epochs"]) + 1
+    state["done"] = int(state["bad_epochs"]) >= patience
+    return improved
 
 
 def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
@@ -279,13 +294,8 @@ def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
         train_loss = float(np.mean(jax.device_get(losses)))
         cur = {"params": p, "batch_stats": bs}
         val_loss, val_f1 = evaluate_arrays(eval_batch, cur, Xva, Yva, Mva)
-        improved = val_loss < float(state["best_val"]) - 1e-5
         state.update(params=p, batch_stats=bs, opt=opt, epoch=ep + 1)
-        if improved:
-            state.update(best_val=val_loss, best_epoch=ep, bad_epochs=0, best=cur)
-        else:
-            state["bad_epochs"] = int(state["bad_epochs"]) + 1
-        state["done"] = int(state["bad_epochs"]) >= args.patience
+        improved = early_stop(state, val_loss, ep, args.patience, cur)
         rec = {"epoch": ep, "train_loss": train_loss, "val_loss": val_loss, "val_f1_centre": val_f1,
                "best_epoch": int(state["best_epoch"]), "seconds": round(time.time() - t0, 2)}
         logf.write(json.dumps(rec) + "\n")
