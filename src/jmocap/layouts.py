@@ -11,8 +11,8 @@ orders them, and a parallel tuple of the model sites that produce each joint:
 * ``blazepose33``: MediaPipe / BlazePose's 33 landmarks; its face-corner, mouth and finger
   landmarks have no site on the character (site ``""``) and are dropped when converted.
 
-Site names are those of ``jmocap/assets/mjcf/humanoid.xml``; ``tests/test_model.py`` checks that
-every site named here exists in the model.
+Site names are those of ``jmocap/assets/mjcf/humanoid.xml``; ``tests/test_humanoid_xml.py``
+checks that every site named here exists in the model.
 """
 
 from __future__ import annotations

@@ -21,9 +21,10 @@ character (its bone lengths, joint limits and mass distribution), in two stages:
    * contacts (their ``E_cont``, ``E_floor``): a foot point labelled in contact stays still and
      its sole lies on the floor; no sole point is below the floor, labelled or not.
 
-   Labels come from the contact estimator (``contact_source``): Rempe et al.'s MLP over 2D
-   keypoint windows with voting (:mod:`jmocap.methods.contact_estimation`), or TPNet's contact
-   head. As in their App. B.4, labels whose point is far from the floor after a first fit are
+   Labels come from the contact estimator (``contact_source``): by default Rempe et al.'s MLP
+   over 2D keypoint windows with jmocap's temporal refiner over its outputs (about a second of
+   context on each side; :mod:`jmocap.methods.contact_estimation`), or the MLP's votes alone,
+   or TPNet's contact head. As in their App. B.4, labels whose point is far from the floor after a first fit are
    outliers and are dropped before the second fit.
 
 2. **Physics** (Rempe et al. Sec. 3.1 with jmocap's full-body dynamics instead of their
