@@ -317,15 +317,20 @@ def test_refiner_reads_its_receptive_field_and_ignores_padding():
     np.testing.assert_allclose(b[:120], a, atol=2e-5)
 
 
+#: one compiled program for the refined estimate of a 48-frame padded clip, shared by the tests
+_refined = jax.jit(lambda p, r, inp: ce.estimate_contacts(p, inp, refiner=r))
+
+
 def test_refined_estimate_batches_and_is_mirror_symmetric(params, clips):
+    """vmapped over padded clips = one clip at a time (padding itself: the test above)."""
     r = ce.default_refiner_params()
     a, b = clips[0].slice(0, 30), clips[1]
     batch = jax.tree.map(lambda *x: np.stack(x), ClipInputs.from_clip(a, 48), ClipInputs.from_clip(b, 48))
     est = jax.jit(jax.vmap(lambda p, r, inp: ce.estimate_contacts(p, inp, refiner=r), in_axes=(None, None, 0)))
     got = np.asarray(est(params, r, batch))
-    one = jax.jit(lambda p, r, inp: ce.estimate_contacts(p, inp, refiner=r))
+    one = _refined
     for i, c in enumerate((a, b)):
-        own = np.asarray(one(params, r, ClipInputs.from_clip(c)))
+        own = np.asarray(one(params, r, ClipInputs.from_clip(c, 48)))[: c.num_frames]
         np.testing.assert_allclose(got[i, : c.num_frames], own, atol=1e-5)
         np.testing.assert_array_equal(got[i, c.num_frames:], 0.0)
         assert np.all((own >= 0) & (own <= 1))
@@ -339,8 +344,7 @@ def test_shipped_refiner_loads_and_beats_the_majority_class(params, clips):
     assert all(np.asarray(x).dtype == np.float32 for x in jax.tree.leaves(r))
     assert ce.tcn_config(r)["dilations"] == (1, 2, 4, 8, 16) and ce.default_refiner_params() is r
     assert ce.refiner_params({"contact_refiner": "own"}) == "own" and ce.refiner_params({}) is r
-    est = jax.jit(lambda p, r, inp: ce.estimate_contacts(p, inp, refiner=r))
-    pred = np.concatenate([np.asarray(est(params, r, ClipInputs.from_clip(c, 48)))[: c.num_frames]
+    pred = np.concatenate([np.asarray(_refined(params, r, ClipInputs.from_clip(c, 48)))[: c.num_frames]
                            for c in clips]) > 0.5
     gt = np.concatenate([c.gt_contacts for c in clips]) > 0.5
     majority = np.broadcast_to(gt.mean(0) > 0.5, gt.shape)
