@@ -110,8 +110,10 @@ class MoconConfig(TO.TrajOptConfig):
     samples: int = static(32)  # per round
     window_frames: int = static(2)  # one control interval
     lookahead_frames: int = static(4)  # simulated past the window to score a sample
-    max_dt: float = static(0.004)  # the simulation step is at most this (s): whole substeps per frame
-    contact_timeconst: float = static(0.008)  # MuJoCo solref time constant of the contacts (s)
+    # the simulation step is at most this (s): whole substeps per frame. 2 ms and contacts of 4 ms
+    # since stop 52 (3.7 ms and 8 ms before: the feet sank into the boxes; docs/evaluation.md)
+    max_dt: float = static(0.002)
+    contact_timeconst: float = static(0.004)  # MuJoCo solref time constant of the contacts (s)
     pd_freq_hz: float = static(8.0)  # servo bandwidth (critically damped, per hinge)
     feedforward: bool = static(True)  # the reference's own hinge torques (trajopt's) added to the servos
     sampling: str = static("gaussian")  # or "uniform" (ablation)
