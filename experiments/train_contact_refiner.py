@@ -163,15 +163,12 @@ def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
 
 
 def scores(pred: np.ndarray, gt: np.ndarray) -> dict:
-    """Pooled F1, balanced accuracy, accuracy, precision, recall (%) of boolean (N, 4) arrays."""
-    tp, fp = np.sum(pred & gt), np.sum(pred & ~gt)
-    fn, tn = np.sum(~pred & gt), np.sum(~pred & ~gt)
-    prec, rec = tp / max(tp + fp, 1), tp / max(tp + fn, 1)
-    spec = tn / max(tn + fp, 1)
-    return {"f1": round(100 * 2 * tp / max(2 * tp + fp + fn, 1), 2),
-            "balanced_accuracy": round(100 * (rec + spec) / 2, 2),
-            "accuracy": round(100 * (tp + tn) / max(tp + tn + fp + fn, 1), 2),
-            "precision": round(100 * prec, 2), "recall": round(100 * rec, 2)}
+    """Pooled F1, balanced accuracy, accuracy, precision, recall (%) of boolean (N, 4) arrays
+    (:func:`jmocap.metrics.contact_classification`), rounded to 0.01."""
+    from jmocap import metrics as M
+
+    got = M.contact_classification(pred.astype(np.float32), gt.astype(np.float32))
+    return {k: round(float(got[k]), 2) for k in ("f1", "balanced_accuracy", "accuracy", "precision", "recall")}
 
 
 def compare(refiner, clips) -> dict:
