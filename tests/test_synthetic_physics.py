@@ -20,6 +20,8 @@ point, ``jmocap.scene.height_above``, and each CoP lies on the surface under its
 
 from __future__ import annotations
 
+import dataclasses
+
 import mujoco
 import numpy as np
 import pytest
@@ -371,3 +373,36 @@ def test_sampling_controller_is_deterministic_and_never_pushes_the_root():
     np.testing.assert_array_equal(a["residual"], 0.0)
     np.testing.assert_array_equal(a["tau"][:, :6], 0.0)
     assert len(a["q"]) == 30 and np.all(np.isfinite(a["q"]))
+
+
+def test_sampling_rescue_records_its_root_wrench_and_keeps_newton():
+    """Issue 23, item 1: where the search fails ``rescue_after`` times at one place, the windows
+    there are stepped with a root wrench (the rescue), recorded as the residual: the recorded
+    contact forces plus that residual explain MuJoCo's own centre of mass (2 % of body weight),
+    the residual is zero outside the rescued frames, and the same settings without the rescue
+    fail the clip instead. A 1-degree tilt limit makes every window "fall", so the rescue runs."""
+    from jmocap.data.synthetic.clips import simulate
+    from jmocap.data.synthetic.errors import GenerationError
+    from jmocap.data.synthetic.physics import SamplingConfig
+    from jmocap.data.synthetic.repertoire import generate_motion
+
+    m = generate_motion(1.7, np.random.default_rng(3), 1.5, 30.0, ("walk",))
+    q = np.concatenate([np.repeat(m.q[:1], 5, axis=0), m.q[:30]])
+    strict = SamplingConfig(samples=8, backtrack_tilt_deg=1.0, rescue_s=0.0)
+    cfg = PhysicsConfig(controller="sampling", sampling=strict)
+    a = simulate(m.character, q, 30.0, cfg, lead=5, rng=np.random.default_rng(7))
+    st = a["stats"]
+    assert st["rescues"] >= 1 and 0 < st["residual_frames"] < len(a["q"])
+    pushed = np.any(a["residual"] != 0, axis=1)
+    assert pushed.sum() == st["residual_frames"]
+    np.testing.assert_array_equal(a["residual"], a["tau"][:, :6])
+    mass = float(np.sum(m.character.mj.body_mass))
+    c = mujoco_com(m.character.mj, a["q"])
+    acc = (c[2:] - 2 * c[1:-1] + c[:-2]) * 30.0 ** 2
+    force = a["grf"].sum(axis=1)[1:-1] + a["residual"][1:-1, :3]
+    err = np.linalg.norm(force - mass * (acc + [0, 0, GRAVITY]), axis=1) / (mass * GRAVITY)
+    assert err.max() < 0.02, err.max()
+    # without the rescue the same search fails the clip (after max_backtracks)
+    off = PhysicsConfig(controller="sampling", sampling=dataclasses.replace(strict, rescue_after=0))
+    with pytest.raises(GenerationError, match="backtracks"):
+        simulate(m.character, q, 30.0, off, lead=5, rng=np.random.default_rng(7))

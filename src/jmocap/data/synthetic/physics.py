@@ -90,7 +90,16 @@ class SamplingConfig:
     backtrack_windows: int = 2
     backtrack_factor: int = 4  # samples x this after a backtrack
     backtrack_sigma: float = 2.0  # and sigma x this
-    max_backtracks: int = 8
+    max_backtracks: int = 8  # without the rescue: backtracks of a clip before it fails
+    # the rescue (0: off): after this many backtracks at one place (each failure within a window
+    # of the first), the windows from the backtrack's start through ``rescue_s`` past the failed
+    # window are stepped with a root wrench, a PD towards the plan's root at ``rescue_freq_hz``
+    # (critically damped, through the root block of the mass matrix) recorded as ``residual``,
+    # and the servos at the plan (the offset decaying by ``carry`` per window); the search then
+    # resumes. The clip fails only where a rescued window loses its balance too
+    rescue_after: int = 3
+    rescue_s: float = 0.1
+    rescue_freq_hz: float = 1.0
     threads: int = 2  # rollout threads
 
 

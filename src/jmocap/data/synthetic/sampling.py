@@ -26,10 +26,17 @@ sampling control (Huang et al. 2022, Sec. 3.1):
   forces as :func:`jmocap.data.synthetic.physics.simulate_tracking` does;
 * when the pelvis tilts more than ``backtrack_tilt_deg`` from the plan's, the search returns
   ``backtrack_windows`` windows and draws ``backtrack_factor`` times more samples with
-  ``backtrack_sigma`` times the spread; after
-  ``max_backtracks`` the simulation fails (:class:`GenerationError`, the clip is redrawn).
+  ``backtrack_sigma`` times the spread;
+* where the search fails ``rescue_after`` times at one place, the *rescue* steps the windows
+  from the backtrack's start through ``rescue_s`` past the failed window with the servos at the
+  plan and a root wrench (a critically damped PD towards the plan's root height, orientation
+  and place relative to the feet), recorded per frame as the ``residual``; then the search
+  resumes. So a motion the search cannot balance keeps its kind (a redrawn clip would select the
+  motions that are easy to balance) and its residual says where it was pushed. Without the
+  rescue (``rescue_after=0``) the simulation fails after ``max_backtracks``
+  (:class:`GenerationError`, the clip is redrawn).
 
-The residual root wrench is zero on every frame by construction. See docs/data.md.
+The residual root wrench is zero on every frame outside the rescues. See docs/data.md.
 """
 
 from __future__ import annotations
@@ -185,8 +192,32 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
                 + sc.w_vel * np.sum((v[:, :3] - qd_ref[k, :3]) ** 2, 1)
                 + sc.w_pos * np.sum((q[:, :3] - ref[:3]) ** 2, 1))
 
-    def commit(k0: int, k1: int, ctrl: np.ndarray, force: np.ndarray) -> None:
-        """Step MuJoCo C over frames k0..k1-1 with the chosen controls, recording the forces."""
+    M = np.zeros((nv, nv))
+    kp = (2 * math.pi * sc.rescue_freq_hz) ** 2
+    kd = 2 * math.sqrt(kp)
+
+    def rescue_wrench(k: int, a: float) -> np.ndarray:
+        """The rescue's root wrench (6,) at the substep ``a`` (0..1) of frame k: a critically
+        damped PD (free-joint coordinates: world force, body-frame torque) through the root
+        block of the mass matrix (``d`` after ``mj_step1``) towards the plan's root as the
+        search scores it: its height and orientation, and its horizontal place *relative to the
+        feet* (the mean of the contact sites; a walk that lags its plan is not pulled back)."""
+        kb = min(k + 1, Te - 1)
+        qa, qb = qr[k], qr[kb].copy()
+        if np.dot(qa[3:7], qb[3:7]) < 0:
+            qb[3:7] *= -1
+        ref = (1 - a) * qa[:7] + a * qb[:7]
+        ref[:2] += d.site_xpos[sites, :2].mean(0) - ((1 - a) * support_ref[k] + a * support_ref[kb])
+        vref = (1 - a) * qd_ref[k, :6] + a * qd_ref[kb, :6]
+        e = np.zeros(6)
+        e[:3] = ref[:3] - d.qpos[:3]
+        mujoco.mju_subQuat(e[3:], ref[3:7] / np.linalg.norm(ref[3:7]), d.qpos[3:7])
+        mujoco.mj_fullM(mj, d, M)
+        return M[:6, :6] @ (kp * e + kd * (vref - d.qvel[:6]))
+
+    def commit(k0: int, k1: int, ctrl: np.ndarray, force: np.ndarray, rescue: bool = False) -> None:
+        """Step MuJoCo C over frames k0..k1-1 with the chosen controls, recording the forces;
+        ``rescue``: with the rescue's root wrench (:func:`rescue_wrench`) as well."""
         e_rot = np.zeros(3)
         for k in range(k0, k1):
             q_out[k], qd_out[k] = d.qpos, d.qvel
@@ -204,6 +235,9 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
                     site_z[k] = sp[:, 2]
                 d.ctrl[:] = ctrl[j]
                 d.qfrc_applied[:] = force[j]
+                if rescue:
+                    d.qfrc_applied[:6] = rescue_wrench(k, i / n)
+                    sub["rescue"][s] = True
                 mujoco.mj_step2(mj, d)
                 # the generalised force the servos and the feed-forward applied: implicitfast
                 # integrates the servos' damping implicitly, so its effective force is taken at
@@ -211,14 +245,19 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
                 sub["tau"][s] = d.qfrc_actuator + d.qfrc_applied - dt * kv * d.qacc
                 record_foot_forces(mj, d, con, sp, sub, s, cfg.site_floor_m)
 
-    def evaluate(offsets, prev, base_q, base_f, a, steps, k0, k2):
+    def servo_targets(offsets, prev, base_q, a, steps):
         """Servo targets (m, steps + lookahead, nu) of the offsets (m, nu), blended from ``prev``
-        by ``a`` over the window's ``steps`` substeps, and their costs (m,) over frames
-        k0+1 .. k2, rolled out from the state in ``state``."""
-        m = len(offsets)
-        ctrl = np.repeat(base_q[None], m, axis=0)
+        by ``a`` over the window's ``steps`` substeps (``lookahead_gain`` of them after)."""
+        ctrl = np.repeat(base_q[None], len(offsets), axis=0)
         ctrl[:, :steps] += prev[None, None, :] * (1 - a)[None, :, None] + offsets[:, None, :] * a[None, :, None]
         ctrl[:, steps:] += sc.lookahead_gain * offsets[:, None, :]
+        return ctrl
+
+    def evaluate(offsets, prev, base_q, base_f, a, steps, k0, k2):
+        """Servo targets of the offsets (:func:`servo_targets`) and their costs (m,) over frames
+        k0+1 .. k2, rolled out from the state in ``state``."""
+        m = len(offsets)
+        ctrl = servo_targets(offsets, prev, base_q, a, steps)
         controls = np.concatenate([ctrl, np.broadcast_to(base_f[None], (m,) + base_f.shape)], axis=-1)
         states, _ = rollout.rollout(mj, datas, state[None], controls, control_spec=control_spec,
                                     nstep=(k2 - k0) * n, initial_warmstart=d.qacc_warmstart[None].copy())
@@ -232,10 +271,24 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     prev = np.zeros(nu)
     k0, backtracks, retry_until, simulated = 0, 0, -1, 0
+    rescue_frames = max(0, round(sc.rescue_s * fps))
+    rescue_until, rescues, fail_at, fails_here = -1, 0, -(10 ** 9), 0
     while k0 < Te - 1:
         snapshots[k0] = (snapshot(mj, d), prev.copy())
         k1 = min(k0 + window, Te - 1)
         k2 = min(k1 + lookahead, Te - 1)
+        if k0 < rescue_until:
+            # the rescue: the servos at the plan (the offset in force decaying) and a root wrench
+            base_q, base_f = targets(k0, k1)
+            steps = (k1 - k0) * n
+            a = np.minimum((np.arange(steps) + 1.0) / max(ramp * n, 1), 1.0)
+            off = sc.carry * prev
+            commit(k0, k1, servo_targets(off[None], prev, base_q, a, steps)[0], base_f, rescue=True)
+            prev = off
+            if not np.all(np.isfinite(d.qpos)) or d.qpos[2] < z_fall or d.xmat[ch.pelvis].reshape(3, 3)[2, 2] < cos_tilt:
+                raise GenerationError(f"the sampling controller's rescue lost balance at frame {k1}")
+            k0 = k1
+            continue
         retry = k0 < retry_until
         N = sc.samples * (sc.backtrack_factor if retry else 1)
         sigma = sc.sigma * (sc.backtrack_sigma if retry else 1.0)
@@ -266,7 +319,13 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
                or tilt(d.qpos[3:7], qr[k1, 3:7]) > math.radians(sc.backtrack_tilt_deg))
         if bad:
             backtracks += 1
-            if backtracks > sc.max_backtracks:
+            if sc.rescue_after > 0:
+                # a failure within a window of the place the last ones happened counts there
+                fails_here = fails_here + 1 if k1 <= fail_at + window else 1
+                fail_at = k1 if fails_here == 1 else fail_at
+                if fails_here >= sc.rescue_after:
+                    rescue_until, fails_here, rescues = max(k1, fail_at) + rescue_frames, 0, rescues + 1
+            elif backtracks > sc.max_backtracks:
                 raise GenerationError(f"the sampling controller lost balance at frame {k1} after "
                                       f"{sc.max_backtracks} backtracks")
             k0, prev = rewind(mj, d, snapshots, k0, sc.backtrack_windows, window)
@@ -277,5 +336,6 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     sim = frames_from_substeps(ch, q_ref, q_out[:T], qd_out[:T], fps, n, lead, cfg, weight,
                                {k: v[:T * n] for k, v in sub.items()}, site_z[:T], root_err[:T],
                                int(nonfoot[:T].sum()))
-    sim["stats"].update(controller="sampling", backtracks=int(backtracks), samples_simulated=int(simulated))
+    sim["stats"].update(controller="sampling", backtracks=int(backtracks), samples_simulated=int(simulated),
+                        rescues=int(rescues))
     return sim
