@@ -671,6 +671,16 @@ def test_evaluate_arrays_keys_follow_the_inputs_and_are_never_nan():
         r = M.evaluate_arrays({"grf": grf}, {"contacts": contacts, "tau": gt_tau}, fps=30.0,
                               pred_mass=10.0, gt_mass=10.0)
         assert ("grf_ballistic_pct_bw" in r) == kept
+    # ... and the net GRF error is scored only on the frames the ground truth's contact forces
+    # explain: frame 1's estimate is 100 % BW off the truth; with a 2 % BW ground-truth residual
+    # there only frame 0 (error 0) counts
+    gt_grf = grf.copy()
+    gt_grf[1] = 0.0
+    for residual_n, err in ((0.4905, 50.0), (1.962, 0.0)):
+        gt_tau = np.zeros((2, 47), np.float32)
+        gt_tau[1, 2] = residual_n
+        r = M.evaluate_arrays({"grf": grf}, {"grf": gt_grf, "tau": gt_tau}, fps=30.0, pred_mass=10.0, gt_mass=10.0)
+        assert r["grf_err_pct_bw"] == pytest.approx(err, abs=TOL)
     bad = pred.copy()
     bad[1, 1, 2] = np.nan
     with pytest.raises(ValueError, match="pred 'keypoints3d' has non-finite values, first at frame 1"):
