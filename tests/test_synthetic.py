@@ -430,6 +430,22 @@ def test_cli_data_synth(tmp_path, capsys):
     assert Archive(ext).ok[0]["kind"] == "reach"
 
 
+def test_cli_data_info_root_residual_by_hand(tmp_path, capsys):
+    """``jmocap data info`` on a physics archive: the share of frames with a root residual,
+    frame-weighted, overall and per kind, from the manifest (hand-worked: 10 % of a 100-frame
+    walk and none of a 300-frame run are 10 of 400 frames)."""
+    out = tmp_path / "phys"
+    out.mkdir()
+    rows = [dict(name="a", file="a.npz", status="ok", kind="walk", frames=100, residual_frame_share=0.1,
+                 residual_force_mean=0.02, residual_force_max=0.5),
+            dict(name="b", file="b.npz", status="ok", kind="run", frames=300, residual_frame_share=0.0,
+                 residual_force_mean=0.0, residual_force_max=0.0)]
+    (out / MANIFEST).write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert main(["data", "info", str(out)]) == 0
+    assert ("root residual: 2.5 % of frames (walk 10.0 %, run 0.0 %); 1 of 2 clips without; mean force 1.00 % BW"
+            in capsys.readouterr().out)
+
+
 def test_cli_data_synth_sampling_controller(tmp_path, capsys):
     """``--controller sampling`` is recorded in the archive's settings and in the clip's physics
     metadata, and its clip has no root residual; without ``--physics`` it is refused."""
@@ -443,6 +459,8 @@ def test_cli_data_synth_sampling_controller(tmp_path, capsys):
     assert clip.meta["physics"]["residual_frame_share"] == 0.0
     np.testing.assert_array_equal(clip.gt_residual, 0.0)
     capsys.readouterr()
+    assert main(["data", "info", str(out)]) == 0
+    assert "root residual: 0.0 % of frames (walk 0.0 %); 1 of 1 clips without" in capsys.readouterr().out
     assert main(["data", "synth", "--out", str(tmp_path / "x"), "--clips", "1", "--controller", "sampling",
                  "--quiet"]) == 2
     assert "--controller needs --physics" in capsys.readouterr().err
