@@ -13,7 +13,7 @@ nonlinear function of q, which leaves an O(dt) discretisation error); friction c
 values average the substeps of +-1 frame, during which a rocking foot moves).
 
 Every clip test runs on both controllers of the generator: the QP tracker with its rescue
-residual and the sampling controller without any root force; and on a terrain clip (a walk down
+residual and the sampling controller with a root force only in its rare rescues; and on a terrain clip (a walk down
 a flight of stairs, boxes in the simulation: heights are then above the terrain under each
 point, ``jmocap.scene.height_above``, and each CoP lies on the surface under its foot).
 """
@@ -128,7 +128,7 @@ def test_newton_contacts_plus_residual_explain_the_com(clip):
 
 def test_residual_zero_on_most_frames(clip, request):
     """Issue 23: the ground truth's motion is explained by contact forces alone on >= 95 % of
-    the frames of walking and running clips. The sampling controller never applies a root force;
+    the frames of walking and running clips. The sampling controller applies one only in its rescues;
     the QP tracker cannot do without its rescue residual (a strict xfail that records it)."""
     assert clip.meta["physics"]["controller"] in ("qp", "sampling")
     if clip.meta["physics"]["controller"] == "qp":

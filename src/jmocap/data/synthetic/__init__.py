@@ -49,7 +49,7 @@ The package, one concern per module (each imports only the ones above it):
 * :mod:`~jmocap.data.synthetic.physics` -- :class:`PhysicsConfig`, :class:`SamplingConfig`,
   :func:`simulate_tracking` (the QP tracker);
 * :mod:`~jmocap.data.synthetic.sampling` -- :func:`simulate_sampling` (sampling-based control
-  with ``mujoco.rollout``: no root force);
+  with ``mujoco.rollout``: a root force only in its rare rescues);
 * :mod:`~jmocap.data.synthetic.cameras`, :mod:`~jmocap.data.synthetic.keypoints` --
   :class:`CameraConfig`, :func:`sample_camera`; :class:`Corruption`,
   :func:`corrupt_keypoints`, :func:`clean_keypoints2d`;

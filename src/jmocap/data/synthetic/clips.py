@@ -120,7 +120,7 @@ def simulate(ch, q_ref: np.ndarray, fps: float, cfg: PhysicsConfig = PhysicsConf
     """The physics variant's simulation with ``cfg.controller``:
     :func:`~jmocap.data.synthetic.physics.simulate_tracking` ("qp", the QP tracker with its rescue
     residual; on the terrain ``scene`` when given) or
-    :func:`~jmocap.data.synthetic.sampling.simulate_sampling` ("sampling", no root force, drawing
+    :func:`~jmocap.data.synthetic.sampling.simulate_sampling` ("sampling", a root force only in its rescues, drawing
     from ``rng``; flat floor only)."""
     if cfg.controller == "qp":
         return simulate_tracking(ch, q_ref, fps, cfg, lead, scene=scene)

@@ -97,8 +97,8 @@ class SamplingConfig:
     # (critically damped, through the root block of the mass matrix) recorded as ``residual``,
     # and the servos at the plan (the offset decaying by ``carry`` per window); the search then
     # resumes. The clip fails only where a rescued window loses its balance too
-    rescue_after: int = 3
-    rescue_s: float = 0.1
+    rescue_after: int = 5
+    rescue_s: float = 0.0
     rescue_freq_hz: float = 1.0
     threads: int = 2  # rollout threads
 
@@ -142,7 +142,7 @@ class PhysicsConfig:
     max_edge_contact_share: float = 0.05
     settle_s: float = 0.5  # lead-in simulated before the clip's first frame and dropped
     # "qp": the QP tracker with the rescue residual (simulate_tracking); "sampling": sampling-based
-    # control, no root force ever (jmocap.data.synthetic.sampling.simulate_sampling)
+    # control, a root force only in its rescues (jmocap.data.synthetic.sampling.simulate_sampling)
     controller: str = "qp"
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
 

@@ -1,4 +1,4 @@
-"""Sampling-based tracking: ground truth moved by joint torques and contacts alone (no root force).
+"""Sampling-based tracking: ground truth moved by joint torques and contacts alone (a root force only in rescues).
 
 The QP tracker of :mod:`jmocap.data.synthetic.physics` follows the kinematic plan frame by frame
 and needs a root residual (the "rescue") wherever the plan is not dynamically feasible: its
