@@ -116,6 +116,8 @@ def results_section(result, *, smoke: bool, source: str, command: str, wall_s: f
         f"(`jmocap data synth --seed {ARCHIVE_SEED} --physics --controller {ARCHIVE_CONTROLLER}`), "
         f"{len(result.clips)} clips, "
         f"{result.info['frames']} frames; kinds: " + ", ".join(f"{k} {n}" for k, n in sorted(kinds.items())) + ".",
+        *([f"- Ground truth's {result.info['gt_residual']} (`jmocap data info`; the forces are scored on the "
+           "frames without, `metrics.GT_MAX_RESIDUAL_PCT_BW`)."] if result.info.get("gt_residual") else []),
         f"- Parameters: {source}.",
         f"- Command: `{command}` ({wall_s / 60:.1f} min).",
         f"- Machine: {platform.machine()} {platform.system()}, {os.cpu_count()} CPU cores, "
@@ -190,6 +192,9 @@ def main(argv=None) -> int:
     result = evaluate(archive, params, base, config, clips=clips, keep_motions=(walk.name,))
     result.info["params"] = source
     result.info["kinds"] = [c.meta.get("kind", "?") for c in clips if c.name in result.clips]
+    from jmocap.data.archive import read_manifest, residual_summary
+
+    result.info["gt_residual"] = residual_summary([e for e in read_manifest(archive) if e.get("name") in result.clips])
     write_outputs(result, args.out, title="jmocap evaluation (held-out synthetic archive)")
     method = next((m for m in ("physionical", *methods) if m in result.motions and m != "kinematic"), None)
     figure = None

@@ -273,7 +273,7 @@ def _consume(results, writer, bar, seed):
 def cmd_data_info(args) -> int:
     from collections import Counter
 
-    from jmocap.data.archive import Archive, ArchiveError
+    from jmocap.data.archive import Archive, ArchiveError, residual_summary
 
     try:
         with Archive(args.path) as a:
@@ -285,17 +285,9 @@ def cmd_data_info(args) -> int:
             cameras = Counter(e.get("camera", "static") for e in ok)
             if set(cameras) != {"static"}:  # an archive with moving cameras
                 print("cameras: " + ", ".join(f"{k} {n}" for k, n in cameras.most_common()))
-            phys = [e for e in ok if "residual_frame_share" in e]
-            if phys:  # a physics archive: where the generator pushed the root (docs/data.md)
-                def share(es):
-                    pushed = sum(e["residual_frame_share"] * e.get("frames", 0) for e in es)
-                    return 100.0 * pushed / max(1, sum(e.get("frames", 0) for e in es))
-
-                by_kind = ", ".join(f"{k} {share([e for e in phys if e.get('kind') == k]):.1f} %"
-                                    for k, _ in Counter(e.get("kind") for e in phys).most_common())
-                free = sum(e["residual_frame_share"] == 0 for e in phys)
-                print(f"root residual: {share(phys):.1f} % of frames ({by_kind}); {free} of {len(phys)} clips "
-                      f"without; mean force {100 * sum(e['residual_force_mean'] for e in phys) / len(phys):.2f} % BW")
+            line = residual_summary(ok)
+            if line:  # a physics archive: where the generator pushed the root (docs/data.md)
+                print(line)
             if a.settings:
                 print("settings: " + json.dumps(a.settings, sort_keys=True))
     except (ArchiveError, FileNotFoundError) as e:

@@ -421,6 +421,31 @@ def read_manifest(path: str | os.PathLike) -> list[dict[str, Any]]:
         return list(a.manifest)
 
 
+def residual_summary(entries: list[dict[str, Any]]) -> str | None:
+    """One line on where a physics archive's generator pushed the root (its manifest entries'
+    ``residual_frame_share``, ``residual_force_mean`` and ``frames``; docs/data.md): the share of
+    frames with a root residual, frame-weighted, overall and per kind (most frequent first), the
+    clips without any, and the mean residual force (% body weight, mean over clips). None when no
+    entry has a residual record (a kinematic archive)."""
+    phys = [e for e in entries if "residual_frame_share" in e]
+    if not phys:
+        return None
+
+    def share(es):
+        pushed = sum(e["residual_frame_share"] * e.get("frames", 0) for e in es)
+        return 100.0 * pushed / max(1, sum(e.get("frames", 0) for e in es))
+
+    kinds: dict[str, int] = {}
+    for e in phys:
+        kinds[e.get("kind")] = kinds.get(e.get("kind"), 0) + 1
+    by_kind = ", ".join(f"{k} {share([e for e in phys if e.get('kind') == k]):.1f} %"
+                        for k in sorted(kinds, key=lambda k: -kinds[k]))
+    free = sum(e["residual_frame_share"] == 0 for e in phys)
+    force = 100.0 * sum(e.get("residual_force_mean", 0.0) for e in phys) / len(phys)
+    return (f"root residual: {share(phys):.1f} % of frames ({by_kind}); {free} of {len(phys)} clips without; "
+            f"mean force {force:.2f} % BW")
+
+
 __all__ = [
     "ARCHIVE_META",
     "MANIFEST",
@@ -430,4 +455,5 @@ __all__ = [
     "iter_clips",
     "npz_bytes",
     "read_manifest",
+    "residual_summary",
 ]
