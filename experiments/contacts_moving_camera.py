@@ -2,7 +2,7 @@
 
     .venv/bin/python experiments/contacts_moving_camera.py [ARCHIVE ...]
 
-For every clip of each archive (default ``data/heldout_moving`` and ``data/heldout_qp``: the same
+For every clip of each archive (default ``data/heldout_moving`` and ``data/heldout``: the same
 motions filmed by moving and by static cameras, docs/evaluation.md "Moving cameras"), the shipped
 contact MLP's voted labels (``estimate_contacts``, ``> 0.5``) against the clip's ``gt_contacts``,
 pooled over every real frame as F1 (%):
@@ -59,4 +59,4 @@ def main(archives: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:] or [str(ROOT / "data/heldout_moving"), str(ROOT / "data/heldout_qp")])
+    main(sys.argv[1:] or [str(ROOT / "data/heldout_moving"), str(ROOT / "data/heldout")])
