@@ -11,7 +11,7 @@
    QP tracker's rescue residual recorded per frame; ``ARCHIVE_CONTROLLER`` says why not the
    sampling controller). The archive resumes,
    so ``--max-clips K`` generates only its first K clips, a prefix of the full archive; an
-   archive made with another controller is refused.
+   archive made with another controller is refused (``--controller`` evaluates another one).
 2. Runs :func:`jmocap.evaluate.evaluate` over it with every method (or ``--methods``) and writes
    ``out/evaluation/metrics.{md,csv,json}``.
 3. Plots the estimated against the ground-truth vertical GRF over a walking clip (paper 000
@@ -47,7 +47,7 @@ BEGIN = "<!-- results:begin -->"
 END = "<!-- results:end -->"
 
 
-def ensure_archive(path: Path, clips: int, workers: int) -> None:
+def ensure_archive(path: Path, clips: int, workers: int, controller: str = ARCHIVE_CONTROLLER) -> None:
     """The held-out archive with (at least) its first ``clips`` clips (resumable, deterministic)."""
     from jmocap.cli import main as jmocap
 
@@ -57,13 +57,13 @@ def ensure_archive(path: Path, clips: int, workers: int) -> None:
         import json
 
         made = json.loads(settings.read_text())["config"].get("physics_cfg", {}).get("controller")
-        if made != ARCHIVE_CONTROLLER:
+        if made != controller:
             sys.exit(f"{settings}: the archive was made with the {made!r} controller, this evaluation's is "
-                     f"{ARCHIVE_CONTROLLER!r} (move it aside, or pass another --archive)")
+                     f"{controller!r} (move it aside, pass another --archive, or --controller {made})")
     have = sum(1 for line in manifest.read_text().splitlines() if line.strip()) if manifest.exists() else 0
     if have < clips:
         cmd = ["data", "synth", "--out", str(path), "--clips", str(clips), "--seed", str(ARCHIVE_SEED),
-               "--physics", "--controller", ARCHIVE_CONTROLLER, "--workers", str(workers)]
+               "--physics", "--controller", controller, "--workers", str(workers)]
         print("+ jmocap " + " ".join(cmd), flush=True)
         if jmocap(cmd) != 0:
             sys.exit(f"could not generate the held-out archive {path}")
@@ -115,7 +115,8 @@ def results_section(result, *, smoke: bool, source: str, command: str, wall_s: f
         ]
     lines += [
         f"- Archive: `{Path(result.archive).relative_to(ROOT) if Path(result.archive).is_relative_to(ROOT) else result.archive}` "
-        f"(`jmocap data synth --seed {ARCHIVE_SEED} --physics --controller {ARCHIVE_CONTROLLER}`), "
+        f"(`jmocap data synth --seed {ARCHIVE_SEED} --physics --controller "
+        f"{result.info.get('controller', ARCHIVE_CONTROLLER)}`), "
         f"{len(result.clips)} clips, "
         f"{result.info['frames']} frames; kinds: " + ", ".join(f"{k} {n}" for k, n in sorted(kinds.items())) + ".",
         *([f"- Ground truth's {result.info['gt_residual']} (`jmocap data info`; the forces are scored on the "
@@ -160,6 +161,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--archive", default=str(ROOT / "data/heldout"), help="held-out archive folder")
     ap.add_argument("--clips", type=int, default=40, help="clips in the held-out archive (default 40)")
+    ap.add_argument("--controller", default=ARCHIVE_CONTROLLER, choices=["qp", "sampling"],
+                    help=f"the archive's simulation controller (default {ARCHIVE_CONTROLLER!r}, ARCHIVE_CONTROLLER)")
     ap.add_argument("--params", help="parameters (.msgpack); default: the shipped weights")
     ap.add_argument("--random-init", action="store_true", help="random parameters: a smoke run")
     ap.add_argument("--max-clips", type=int, help="evaluate (and generate) only this many clips: a smoke run")
@@ -184,7 +187,7 @@ def main(argv=None) -> int:
 
     archive = Path(args.archive)
     n = min(args.clips, args.max_clips) if args.max_clips else args.clips
-    ensure_archive(archive, n, args.workers)
+    ensure_archive(archive, n, args.workers, args.controller)
     t0 = time.perf_counter()
     params, base, source = resolve_params(args)
     methods = tuple(args.methods or method_names())
@@ -193,6 +196,7 @@ def main(argv=None) -> int:
     config = EvalConfig(methods, args.batch_size, args.max_clips, args.seed, True, args.max_frames)
     result = evaluate(archive, params, base, config, clips=clips, keep_motions=(walk.name,))
     result.info["params"] = source
+    result.info["controller"] = args.controller
     result.info["kinds"] = [c.meta.get("kind", "?") for c in clips if c.name in result.clips]
     from jmocap.data.archive import read_manifest, residual_summary
 
