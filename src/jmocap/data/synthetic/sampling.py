@@ -268,6 +268,12 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
             total += np.where(np.isfinite(c), c, np.inf)
         return ctrl, total
 
+    def fallen() -> bool:
+        """The simulated state is not finite, or the pelvis is below the fall height or tilted past
+        the fall angle (``PhysicsConfig.fall_height`` / ``fall_tilt_deg``)."""
+        return (not np.all(np.isfinite(d.qpos)) or d.qpos[2] < z_fall
+                or d.xmat[ch.pelvis].reshape(3, 3)[2, 2] < cos_tilt)
+
     snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     prev = np.zeros(nu)
     k0, backtracks, retry_until, simulated = 0, 0, -1, 0
@@ -277,28 +283,25 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         snapshots[k0] = (snapshot(mj, d), prev.copy())
         k1 = min(k0 + window, Te - 1)
         k2 = min(k1 + lookahead, Te - 1)
+        base_q, base_f = targets(k0, k2)
+        steps = (k1 - k0) * n
+        # from the offset in force (the last window's) to the next
+        a = np.minimum((np.arange(steps) + 1.0) / max(ramp * n, 1), 1.0)
         if k0 < rescue_until:
             # the rescue: the servos at the plan (the offset in force decaying) and a root wrench
-            base_q, base_f = targets(k0, k1)
-            steps = (k1 - k0) * n
-            a = np.minimum((np.arange(steps) + 1.0) / max(ramp * n, 1), 1.0)
             off = sc.carry * prev
-            commit(k0, k1, servo_targets(off[None], prev, base_q, a, steps)[0], base_f, rescue=True)
+            commit(k0, k1, servo_targets(off[None], prev, base_q, a, steps)[0, :steps], base_f[:steps], rescue=True)
             prev = off
-            if not np.all(np.isfinite(d.qpos)) or d.qpos[2] < z_fall or d.xmat[ch.pelvis].reshape(3, 3)[2, 2] < cos_tilt:
+            if fallen():
                 raise GenerationError(f"the sampling controller's rescue lost balance at frame {k1}")
             k0 = k1
             continue
         retry = k0 < retry_until
         N = sc.samples * (sc.backtrack_factor if retry else 1)
         sigma = sc.sigma * (sc.backtrack_sigma if retry else 1.0)
-        base_q, base_f = targets(k0, k2)
-        steps = (k1 - k0) * n
         scale = np.asarray(sc.sigma_scales, float)[np.arange(N) % len(sc.sigma_scales)]
         off = sc.carry * prev[None] + rng.normal(size=(N, nu)) * (sigma * free) * scale[:, None]
         off[0] = sc.carry * prev
-        # from the offset in force (the last window's) to the sample's
-        a = np.minimum((np.arange(steps) + 1.0) / max(ramp * n, 1), 1.0)
         mujoco.mj_getState(mj, d, state, full_spec)
 
         ctrl, total = evaluate(off, prev, base_q, base_f, a, steps, k0, k2)
@@ -314,9 +317,7 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
                 off, ctrl, best = mean, ctrl_m, 0
         prev = off[best]
         commit(k0, k1, ctrl[best, :steps], base_f[:steps])
-        bad = (not np.all(np.isfinite(d.qpos)) or d.qpos[2] < z_fall
-               or d.xmat[ch.pelvis].reshape(3, 3)[2, 2] < cos_tilt
-               or tilt(d.qpos[3:7], qr[k1, 3:7]) > math.radians(sc.backtrack_tilt_deg))
+        bad = fallen() or tilt(d.qpos[3:7], qr[k1, 3:7]) > math.radians(sc.backtrack_tilt_deg)
         if bad:
             backtracks += 1
             if sc.rescue_after > 0:
