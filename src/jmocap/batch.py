@@ -147,6 +147,33 @@ def run_identity(params, config, method: str) -> dict[str, str]:
     }
 
 
+def run_settings(identity: dict[str, str], options: BatchOptions) -> dict[str, Any]:
+    """The settings an output folder's ``archive.json`` records (a run with other settings is
+    refused there): the result format, method, config, weights, character and the options that
+    change results. Every engine (this one, :mod:`jmocap.batch_ray`) writes the same, so a run
+    begun by one resumes with the other. Raises ValueError for an unknown ``options.camera``."""
+    if options.camera not in ("estimate", "default"):
+        raise ValueError(f"camera must be 'estimate' or 'default', got {options.camera!r}")
+    settings = {
+        "engine": "jmocap.batch",  # the output folder's layout (kept: folders written before resume)
+        "format": RESULT_FORMAT,
+        **{k: identity[k] for k in ("method", "config", "params_sha256", "model_sha256")},
+        "image_size": list(options.image_size) if options.image_size else None,
+    }
+    # (only when not the default: output folders written before these options resume)
+    if options.height_m != "auto":
+        settings["height_m"] = options.height_m
+    if options.mass_kg is not None:
+        settings["mass_kg"] = options.mass_kg
+    if options.camera != "estimate":
+        settings["camera"] = options.camera
+    if options.scene is not None:
+        from jmocap.scene import scene_document
+
+        settings["scene"] = scene_document(options.scene)
+    return settings
+
+
 def reconstruct_archive(
     input: str | os.PathLike,
     output: str | os.PathLike,
@@ -179,25 +206,7 @@ def reconstruct_archive(
 def _reconstruct_archive(input, output, params, config, options, *, method, progress, devices):
     t0 = time.perf_counter()
     identity = run_identity(params, config, method)
-    settings = {
-        "engine": "jmocap.batch",
-        "format": RESULT_FORMAT,
-        **{k: identity[k] for k in ("method", "config", "params_sha256", "model_sha256")},
-        "image_size": list(options.image_size) if options.image_size else None,
-    }
-    # (only when not the default: output folders written before these options resume)
-    if options.height_m != "auto":
-        settings["height_m"] = options.height_m
-    if options.mass_kg is not None:
-        settings["mass_kg"] = options.mass_kg
-    if options.camera != "estimate":
-        settings["camera"] = options.camera
-    if options.scene is not None:
-        from jmocap.scene import scene_document
-
-        settings["scene"] = scene_document(options.scene)
-    if options.camera not in ("estimate", "default"):
-        raise ValueError(f"camera must be 'estimate' or 'default', got {options.camera!r}")
+    settings = run_settings(identity, options)
     write_bvh = _bvh_writer() if options.bvh else None
     engine = Reconstructor(
         params, config, method=method, chunk=options.chunk, bucket=options.bucket, batch=options.batch,
@@ -248,36 +257,11 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
             t = time.perf_counter()
             clip, src = it.clip, it.source
             try:
-                check_finite(res, src.where)
-                height, model = subject_height(clip), subject_model(clip)
-                arrays = result_arrays(
-                    clip, res, method=method, height_m=height, mass_kg=model.total_mass,
-                    forces_estimated=engine.method.estimates_forces, identity=identity, source=src.where,
-                    assumed=assumed_fields(clip), warnings=it.warnings,
-                    height_source=clip.meta.get("height_source"),
-                    extrinsics_source=clip.meta.get("extrinsics_source"),
-                )
-                extra = {"height_source": clip.meta.get("height_source"),
-                         "extrinsics_source": clip.meta.get("extrinsics_source")}
-                if clip.meta.get("camera_estimate"):
-                    extra["camera_estimate"] = clip.meta["camera_estimate"]
-                if clip.meta.get("layout_conversion"):
-                    extra["layout_conversion"] = clip.meta["layout_conversion"]
-                if clip.meta.get("height_estimate"):
-                    extra["height_estimate"] = clip.meta["height_estimate"]
-                if it.warnings:
-                    extra["warnings"] = it.warnings
-                if res.get("certified") is not None:  # per-frame QP certificates (e.g. ``pip``)
-                    extra["uncertified_frames"] = int(np.sum(~np.asarray(res["certified"], bool)))
-                if res.get("diagnostics") is not None:  # a solver's per-clip report (e.g. ``trajopt``)
-                    extra["diagnostics"] = {k: round(float(v), 6) for k, v in res["diagnostics"].items()}
+                arrays, extra = result_record(clip, res, engine, identity, src.where, it.warnings)
                 if write_bvh is not None:
-                    extra["bvh"] = _write_bvh(write_bvh, writer.root, src.name, model, res["q"], clip.fps)
-                writer.add_result(
-                    src.name, arrays, frames=clip.num_frames, fps=clip.fps, layout=clip.layout,
-                    height_m=height, source=src.where, chunks=len(engine.plan(clip)),
-                    seconds=round(it.seconds + share + time.perf_counter() - t, 4), **extra,
-                )
+                    extra["bvh"] = _write_bvh(write_bvh, writer.root, src.name, subject_model(clip), res["q"], clip.fps)
+                writer.add_result(src.name, arrays, seconds=round(it.seconds + share + time.perf_counter() - t, 4),
+                                  **extra)
             except Exception as e:  # noqa: BLE001 - a batch run records failures and goes on
                 record_failure(src, e, it.seconds + share + time.perf_counter() - t, frames=clip.num_frames)
                 return
@@ -348,6 +332,36 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
     if interrupted is not None:
         raise interrupted
     return summary
+
+
+def result_record(clip: Clip, res: dict[str, np.ndarray], engine: Reconstructor, identity: dict[str, str],
+                  where: str, warnings: Sequence[str]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """A clip's result file arrays (:func:`jmocap.results.result_arrays`) and the fields of its
+    manifest line (all but ``seconds`` and ``bvh``), from the engine's result ``res``. Raises
+    :class:`~jmocap.results.ReconstructionError` (file, frame, field) for a non-finite result."""
+    check_finite(res, where)
+    height, model = subject_height(clip), subject_model(clip)
+    arrays = result_arrays(
+        clip, res, method=engine.method.name, height_m=height, mass_kg=model.total_mass,
+        forces_estimated=engine.method.estimates_forces, identity=identity, source=where,
+        assumed=assumed_fields(clip), warnings=list(warnings),
+        height_source=clip.meta.get("height_source"),
+        extrinsics_source=clip.meta.get("extrinsics_source"),
+    )
+    extra: dict[str, Any] = {"frames": clip.num_frames, "fps": clip.fps, "layout": clip.layout,
+                             "height_m": height, "source": where, "chunks": len(engine.plan(clip)),
+                             "height_source": clip.meta.get("height_source"),
+                             "extrinsics_source": clip.meta.get("extrinsics_source")}
+    for key in ("camera_estimate", "layout_conversion", "height_estimate"):
+        if clip.meta.get(key):
+            extra[key] = clip.meta[key]
+    if warnings:
+        extra["warnings"] = list(warnings)
+    if res.get("certified") is not None:  # per-frame QP certificates (e.g. ``pip``)
+        extra["uncertified_frames"] = int(np.sum(~np.asarray(res["certified"], bool)))
+    if res.get("diagnostics") is not None:  # a solver's per-clip report (e.g. ``trajopt``)
+        extra["diagnostics"] = {k: round(float(v), 6) for k, v in res["diagnostics"].items()}
+    return arrays, extra
 
 
 def run_summary(input, output, names, entries, run: dict, skipped: int, elapsed: float) -> dict[str, Any]:
@@ -426,6 +440,33 @@ def _signals_raise():
         signal.signal(signal.SIGTERM, old)
 
 
+def read_clip(src: Source, config, options: BatchOptions) -> tuple[Clip, list[str], list[str]]:
+    """Read a source for a run: the clip with its subject resolved
+    (:func:`jmocap.subject.resolve_subject`), in the parameters' layout (:func:`adapt_layout`),
+    with ``options.scene`` where it has none, and checked (:func:`check_clip`). Returns the clip,
+    the conversion's warnings and the check's; raises what reading or checking raises."""
+    clip, warnings = adapt_layout(resolve_subject(src.load(), options.height_m, options.mass_kg), config)
+    if options.scene is not None and clip.scene is None:
+        if clip.extrinsics is None:
+            raise FormatError(f"{src.where}: the scene given (--scene) is in the world frame of the "
+                              "camera's extrinsics, and the clip has none (give its camera, or no scene)")
+        clip = clip.replace(scene=options.scene)
+    return clip, warnings, check_clip(clip, config, src.where)  # an unusable clip fails here, before any estimate
+
+
+def place_camera(clip: Clip, config, floor: FloorEstimator | None, where: str,
+                 checked: list[str]) -> tuple[Clip, list[str]]:
+    """A read clip (:func:`read_clip`, its check's warnings ``checked``) with its camera: the
+    floor estimated where it has no extrinsics and ``floor`` is given (checked again: the
+    warnings of the estimated camera), else the input's or the default camera, recorded as the
+    clip's ``extrinsics_source``."""
+    if floor is not None and clip.extrinsics is None:
+        clip = floor.resolve(clip)
+        return clip, check_clip(clip, config, where)
+    source = "input" if clip.extrinsics is not None else "default"
+    return clip.replace(meta={**clip.meta, "extrinsics_source": source}), checked
+
+
 def _read_ahead(sources: Sequence[Source], config, depth: int, options: BatchOptions = BatchOptions(),  # noqa: B008
                 floor: FloorEstimator | None = None):
     """``(source, clip or the exception that reading it raised, seconds)`` in order, read
@@ -436,19 +477,8 @@ def _read_ahead(sources: Sequence[Source], config, depth: int, options: BatchOpt
     def load(src: Source):
         t = time.perf_counter()
         try:
-            clip, warnings = adapt_layout(resolve_subject(src.load(), options.height_m, options.mass_kg), config)
-            if options.scene is not None and clip.scene is None:
-                if clip.extrinsics is None:
-                    raise FormatError(f"{src.where}: the scene given (--scene) is in the world frame of the "
-                                      "camera's extrinsics, and the clip has none (give its camera, or no scene)")
-                clip = clip.replace(scene=options.scene)
-            checked = check_clip(clip, config, src.where)  # an unusable clip fails here, before any estimate
-            if floor is not None and clip.extrinsics is None:
-                clip = floor.resolve(clip)
-                checked = check_clip(clip, config, src.where)  # the warnings of the estimated camera
-            else:
-                clip = clip.replace(meta={**clip.meta, "extrinsics_source":
-                                          "input" if clip.extrinsics is not None else "default"})
+            clip, warnings, checked = read_clip(src, config, options)
+            clip, checked = place_camera(clip, config, floor, src.where, checked)
             got = (clip, warnings + checked)
         except Exception as e:  # noqa: BLE001 - recorded as the clip's failure (RecursionError too)
             got = e
@@ -498,4 +528,15 @@ def _write_bvh(write_bvh, root: Path, name: str, model: Model, q: np.ndarray, fp
     return rel
 
 
-__all__ = ["BatchOptions", "Interrupted", "adapt_layout", "check_clip", "reconstruct_archive", "run_identity"]
+__all__ = [
+    "BatchOptions",
+    "Interrupted",
+    "adapt_layout",
+    "check_clip",
+    "place_camera",
+    "read_clip",
+    "reconstruct_archive",
+    "result_record",
+    "run_identity",
+    "run_settings",
+]

@@ -625,6 +625,23 @@ def _reconstruct(p: argparse.ArgumentParser) -> None:
                         + ", ".join(f"{k}={v}" for k, v in _limit_defaults().items())
                         + " (docs/formats.md, 'Limits')")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    g = p.add_argument_group("cluster", "run on a Ray cluster (pip install 'jmocap[ray]'; docs/performance.md, "
+                                        "'Archives larger than one machine')")
+    g.add_argument("--engine", choices=("local", "ray"), default="local",
+                   help="'local' (default): this process; 'ray': clips read and reconstructed by Ray actors, "
+                        "results written here, the same files and manifest (either engine resumes the other)")
+    g.add_argument("--address", metavar="ADDR",
+                   help="with --engine ray: a running cluster ('auto', HOST:PORT or ray://HOST:PORT); default: "
+                        "a local Ray instance started for the run")
+    g.add_argument("--workers", type=int, metavar="N",
+                   help="with --engine ray: reconstruction actors (default: the cluster's CPUs / --cpus-per-worker)")
+    g.add_argument("--cpus-per-worker", type=float, default=1.0, metavar="C",
+                   help="with --engine ray: CPUs per actor (default 1; C >= 2 on a CPU: C host devices)")
+    g.add_argument("--gpus-per-worker", type=float, default=0.0, metavar="G",
+                   help="with --engine ray: GPUs per actor (default 0; below 1 actors share a GPU, JAX's "
+                        "memory preallocation off)")
+    g.add_argument("--readers", type=int, default=1, metavar="N",
+                   help="with --engine ray: actors reading and checking clips (default 1)")
     p.epilog = (
         "exit status: 0 every clip has a result; 1 some clips failed (listed in manifest.jsonl and "
         "summary.json); 2 bad arguments, or an input / output that cannot be used at all; 130 / 143 "
@@ -692,6 +709,10 @@ def run_reconstruct(args) -> int:
     from jmocap.batch_imu import is_imu_archive
 
     if is_imu_archive(args.input):
+        if getattr(args, "engine", "local") != "local":
+            print("jmocap reconstruct: --engine ray reconstructs 2D keypoint clips; an IMU archive runs with "
+                  "the local engine", file=sys.stderr)
+            return 2
         return _reconstruct_imu(args)
     try:
         if args.kinematic_only and args.method not in (None, "kinematic"):
@@ -714,10 +735,26 @@ def run_reconstruct(args) -> int:
             bvh=args.bvh, max_clips=args.max_clips, height_m=getattr(args, "height_m", "auto"),
             mass_kg=getattr(args, "mass_kg", None), camera=getattr(args, "camera", "estimate"), scene=scene,
         )
-        summary = reconstruct_archive(
-            args.input, args.output, params, config, options, method=method,
-            progress=progress_bar("reconstruct", not args.quiet), limits=limits,
-        )
+        engine = getattr(args, "engine", "local")
+        if engine == "local" and any(getattr(args, k, None) not in (None, d) for k, d in
+                                     (("address", None), ("workers", None), ("cpus_per_worker", 1.0),
+                                      ("gpus_per_worker", 0.0), ("readers", 1))):
+            raise ValueError("--address, --workers, --cpus-per-worker, --gpus-per-worker and --readers need "
+                             "--engine ray")
+        if engine == "ray":
+            from jmocap.batch_ray import RayOptions, reconstruct_archive_ray
+
+            ray_options = RayOptions(address=args.address, workers=args.workers, cpus_per_worker=args.cpus_per_worker,
+                                     gpus_per_worker=args.gpus_per_worker, readers=args.readers)
+            summary = reconstruct_archive_ray(
+                args.input, args.output, params, config, options, ray_options, method=method,
+                progress=progress_bar("reconstruct", not args.quiet), limits=limits,
+            )
+        else:
+            summary = reconstruct_archive(
+                args.input, args.output, params, config, options, method=method,
+                progress=progress_bar("reconstruct", not args.quiet), limits=limits,
+            )
     except (KeyboardInterrupt, Interrupted) as e:
         status = e.exit_status if isinstance(e, Interrupted) else 130
         print(f"\njmocap reconstruct: interrupted ({'SIGINT' if status == 130 else 'SIGTERM'}); finished results "

@@ -129,6 +129,18 @@ def chunk_plan(num_frames: int, chunk: int, bucket: int) -> tuple[int, ...]:
     return (chunk,) * full + last
 
 
+def clip_plan(method, num_frames: int, chunk: int, bucket: int) -> tuple[int, ...]:
+    """The chunk lengths of a clip of ``num_frames`` for ``method`` (a registered
+    :class:`~jmocap.methods.base.Method` or its name): a causal method's chunks
+    (:func:`chunk_plan`); a non-causal one (``trajopt``) sees its whole clip at once, padded to a
+    multiple of ``bucket`` (it splits long clips into windows itself). Clips with one plan are
+    batched together (one compilation per plan)."""
+    method = methods.get_method(method) if isinstance(method, str) else method
+    if not method.causal:
+        return (-(-num_frames // bucket) * bucket,)
+    return chunk_plan(num_frames, chunk, bucket)
+
+
 def chunk_frames(num_frames: int, start: int, length: int, history: int,
                  lookahead: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Frame indices (history + length + lookahead,) of the chunk starting at ``start`` (clamped
@@ -258,11 +270,8 @@ class Reconstructor:
         self.lookahead = self.method.lookahead(config)
 
     def plan(self, clip: Clip) -> tuple[int, ...]:
-        """A causal method's chunks; a non-causal one (``trajopt``) sees its whole clip at once,
-        padded to a multiple of ``bucket`` (it splits long clips into windows itself)."""
-        if not self.method.causal:
-            return (-(-clip.num_frames // self.bucket) * self.bucket,)
-        return chunk_plan(clip.num_frames, self.chunk, self.bucket)
+        """The clip's chunk lengths (:func:`clip_plan`)."""
+        return clip_plan(self.method, clip.num_frames, self.chunk, self.bucket)
 
     def run(self, clips: Sequence[Clip]) -> list[dict[str, np.ndarray]]:
         """Results of any clips (in their order): grouped by chunk plan, ``group_size`` at a time."""
@@ -371,6 +380,7 @@ __all__ = [
     "tiled_vmap",
     "chunk_frames",
     "chunk_plan",
+    "clip_plan",
     "constant_config",
     "reconstruct_chunk",
     "reconstruct_chunks",
