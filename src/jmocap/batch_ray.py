@@ -40,6 +40,7 @@ import pickle
 import signal
 import tempfile
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -169,7 +170,7 @@ class _Worker:
                 out["status"][i], out["error"][i] = "failed", str(batch["error"][i])
                 continue
             t = time.perf_counter()
-            clip, warnings, checked = pickle.loads(batch["clip"][i])
+            clip, notes, checked = pickle.loads(batch["clip"][i])
             where = str(batch["where"][i])
             out["frames"][i] = clip.num_frames
             try:
@@ -179,7 +180,7 @@ class _Worker:
                 continue
             finally:
                 out["seconds"][i] += time.perf_counter() - t
-            groups.setdefault(str(batch["key"][i]), []).append((i, clip, warnings + checked, where))
+            groups.setdefault(str(batch["key"][i]), []).append((i, clip, notes + checked, where))
         for group in groups.values():
             for s in range(0, len(group), self.engine.group_size):
                 self._compute(group[s:s + self.engine.group_size], out)
@@ -201,10 +202,10 @@ class _Worker:
             out["seconds"][i] += time.perf_counter() - t
             return
         share = (time.perf_counter() - t) / len(group)
-        for (i, clip, warnings, where), res in zip(group, results, strict=True):
+        for (i, clip, notes, where), res in zip(group, results, strict=True):
             t = time.perf_counter()
             try:
-                arrays, extra = result_record(clip, res, self.engine, self.identity, where, warnings)
+                arrays, extra = result_record(clip, res, self.engine, self.identity, where, notes)
                 if self.options.bvh:
                     extra["bvh_bytes"] = _bvh_bytes(clip, res["q"])
                 out["status"][i], out["payload"][i] = "ok", pickle.dumps((arrays, extra), protocol=5)
@@ -262,14 +263,18 @@ def reconstruct_archive_ray(
         where = {s.name: s.where for s in sources}
         bar = progress(len(todo)) if progress is not None else None
         if not ray.is_initialized():
-            ray.init(address=ray_options.address, include_dashboard=False, logging_level="warning")
+            with warnings.catch_warnings():  # Ray starts its processes by fork + exec: no JAX state is shared
+                warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
+                ray.init(address=ray_options.address, include_dashboard=False, logging_level="warning")
             started = True
         resources = ray.cluster_resources()
+        timing: dict[str, float] = {"start_s": round(time.perf_counter() - t0, 3)}
         try:
             if todo:
                 with _signals_raise():
                     for row in _rows(ray, todo, input, output, params, config, method, options, ray_options,
-                                     identity, limits, resources):
+                                     identity, limits, resources, timing):
+                        timing.setdefault("first_result_s", round(time.perf_counter() - t0, 3))
                         _record(writer, row, where, options, run, bar)
         except (KeyboardInterrupt, Interrupted) as e:
             interrupted = e  # the results already written stay; the summary says so
@@ -289,8 +294,10 @@ def reconstruct_archive_ray(
             "SIGINT" if isinstance(interrupted, KeyboardInterrupt) else signal.Signals(interrupted.signum).name
         ),
         "engine": "ray",
-        "ray": {**dataclasses.asdict(ray_options), "cluster_resources": {k: v for k, v in resources.items()
-                                                                          if k in ("CPU", "GPU", "memory")}},
+        # seconds from the run's start: Ray connected (start_s), the first result written
+        # (first_result_s: reading, sorting, the workers' start and compilation); read_s: reading and sorting
+        "ray": {**dataclasses.asdict(ray_options), "timing": timing,
+                "cluster_resources": {k: v for k, v in resources.items() if k in ("CPU", "GPU", "memory")}},
         "options": {**{f.name: getattr(options, f.name) for f in dataclasses.fields(options)},
                     "image_size": settings["image_size"], "scene": settings.get("scene")},
         "params_sha256": identity["params_sha256"],
@@ -303,8 +310,9 @@ def reconstruct_archive_ray(
 
 
 def _rows(ray, todo, input, output, params, config, method, options, ray_options, identity, limits,
-          resources):
-    """The Ray Dataset pipeline (module docstring): names -> read clips -> sorted by plan -> results."""
+          resources, timing: dict[str, float]):
+    """The Ray Dataset pipeline (module docstring): names -> read clips -> sorted by plan -> results
+    (``timing["read_s"]``: the seconds of reading and sorting)."""
     ctx = ray.data.DataContext.get_current()
     ctx.enable_progress_bars = False
     ctx.print_on_execution_start = False
@@ -324,7 +332,9 @@ def _rows(ray, todo, input, output, params, config, method, options, ray_options
     )
     # read and sorted to the end before a worker starts: the sort's tasks need CPUs that the
     # workers would otherwise hold (a deadlock on a cluster the workers fill)
+    t = time.perf_counter()
     ds = ds.sort("key").materialize()
+    timing["read_s"] = round(time.perf_counter() - t, 3)
     env = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"} if 0 < ray_options.gpus_per_worker < 1 else {}
     import jax
 
