@@ -92,7 +92,7 @@ def test_stages_log_resume_and_overrides(xla_cache, archive, tmp_path):
     config_b = dataclasses.replace(config, out=str(tmp_path / "b"))
     with pytest.raises(_Interrupted):
         train(config_b, progress=False, data=_StopAfter(data, 2))
-    ckpt = tmp_path / "b" / "checkpoint.msgpack"
+    ckpt = tmp_path / "b" / "checkpoint"
     assert ckpt.exists()
     resumed = train(config_b, progress=False, data=data)
     for a, b in zip(_leaves(full), _leaves(resumed), strict=True):

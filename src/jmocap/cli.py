@@ -1087,5 +1087,72 @@ def cmd_demo(args) -> int:
     return 0
 
 
+# =========================================================================================
+# jmocap train
+# =========================================================================================
+
+
+@command("train", "train TPNet, DyNet and GRFNet from a training config, on one or several processes")
+def _train(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Run (or resume from OUT/checkpoint/) the staged training of a TrainConfig JSON "
+        "(jmocap.train; e.g. experiments/configs/default.json). Several processes, e.g. one per "
+        "host, train one data-parallel run: start this command in each with the same config, "
+        "--coordinator HOST:PORT (process 0's host and a free port there), --num-processes N and "
+        "its own --process-id I, or with --distributed to read them from the cluster environment "
+        "(SLURM, Open MPI). OUT must be a folder all processes share; a run resumes on any number "
+        "of processes."
+    )
+    p.add_argument("--config", required=True, metavar="JSON", help="TrainConfig as JSON")
+    p.add_argument("--out", help="output folder (default: the config's out)")
+    p.add_argument("--coordinator", metavar="HOST:PORT", help="process 0's host and a free port on it")
+    p.add_argument("--num-processes", type=int, metavar="N", help="processes of the run")
+    p.add_argument("--process-id", type=int, metavar="I", help="this process, 0 .. N-1")
+    p.add_argument("--distributed", action="store_true",
+                   help="a multi-process run whose processes JAX finds in the cluster environment (e.g. SLURM)")
+    p.add_argument("--cache-dir", default=_xla_cache_dir(), metavar="DIR",
+                   help="persistent XLA compilation cache ('' for none; default %(default)s)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_train)
+
+
+def cmd_train(args) -> int:
+    import dataclasses
+    from pathlib import Path
+
+    explicit = [a is not None for a in (args.coordinator, args.num_processes, args.process_id)]
+    if any(explicit) and not all(explicit):
+        print("jmocap train: give --coordinator, --num-processes and --process-id together (or none)", file=sys.stderr)
+        return 2
+    if any(explicit) and args.distributed:
+        print("jmocap train: --distributed reads the processes from the environment; not with --coordinator",
+              file=sys.stderr)
+        return 2
+    import jax
+
+    from jmocap.train import TrainConfig, initialize_distributed, train
+
+    try:
+        if any(explicit) or args.distributed:  # before anything else uses JAX
+            initialize_distributed(args.coordinator, args.num_processes, args.process_id)
+        config = TrainConfig.from_json(json.loads(Path(args.config).read_text()))
+    except (OSError, ValueError, TypeError) as e:
+        print(f"jmocap train: {e}", file=sys.stderr)
+        return 2
+    if args.out:
+        config = dataclasses.replace(config, out=args.out)
+    if args.cache_dir and not jax.config.jax_compilation_cache_dir:
+        jax.config.update("jax_compilation_cache_dir", args.cache_dir)
+    try:
+        train(config, progress=not args.quiet)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"jmocap train: {e}", file=sys.stderr)
+        return 2
+    if jax.process_index() == 0:
+        print(f"jmocap train: {len(config.stages)} stage(s) on {jax.process_count()} process(es), "
+              f"{jax.device_count()} device(s) -> {config.out}")
+    return 0
+
+
 if __name__ == "__main__":
     sys.exit(main())

@@ -13,9 +13,17 @@ Batches are random windows of clips from a jmocap archive (folder of clip .npz f
 ``jmocap data synth``); each sample is simulated with a character scaled to its subject's
 height (Model arrays are batched with the samples; the topology is shared, so one compile).
 
-Training is resumable: a checkpoint (parameters, optimiser state, stage, step, random key)
-is written atomically every ``checkpoint_every`` steps and at the end of each stage into
-``out/checkpoint.msgpack``, and a JSON line per logged step into ``out/log.jsonl``.
+Training is resumable: a checkpoint (parameters, optimiser state, stage, step, random key, the
+window sampler's and the validation state) is written atomically through orbax every
+``checkpoint_every`` steps and at the end of each stage into ``out/checkpoint/``
+(:class:`Checkpoints`; runs started before resume from their ``out/checkpoint.msgpack``), and a
+JSON line per logged step into ``out/log.jsonl``.
+
+Training is data-parallel over all devices (:class:`DataParallel`), also across processes and
+hosts (:func:`initialize_distributed` in each process, then :func:`train` in each): every process
+draws the same global batch and feeds its devices' rows, so a run's windows, losses and
+parameters do not depend on the number of processes (up to float rounding), and it can resume on
+another number of processes than the one that wrote its checkpoint.
 """
 
 from __future__ import annotations
@@ -25,20 +33,23 @@ import json
 import os
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import orbax.checkpoint as ocp
 from flax import serialization
+from jax.flatten_util import ravel_pytree
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jmocap import losses as Lo
 from jmocap import physics as P
 from jmocap.camera import Camera, project
 from jmocap.constants import FLOOR_NORMAL, NUM_CONTACTS
 from jmocap.inputs import ClipInputs
-from jmocap.io import atomic_write
 from jmocap.layouts import get_layout, through_layout
 from jmocap.methods.physcap import CycleState, PhysCapConfig, init_params, simulate
 from jmocap.methods.stages import body_weight, contact_probability, pd_error, target_pose
@@ -336,21 +347,55 @@ def _validation_windows(val: TrainingSet, windows: int, batch: int, frames: int)
     return [plain.sample(rng, batch, frames) for _ in range(max(1, -(-windows // batch)))]
 
 
-def make_step(stage: StageConfig, config: PhysCapConfig, optimizer, truncate: bool = True):
+def make_step(stage: StageConfig, config: PhysCapConfig, optimizer, truncate: bool = True, mesh: Mesh | None = None):
+    """The jitted training step ``(params, opt_state, model, data, key) -> (params, opt_state,
+    loss, terms, grad_norm)``: the loss terms' means over the batch's rows and their gradient.
+
+    With a ``mesh`` of several devices (:class:`DataParallel`; rows sharded over its ``"batch"``
+    axis, everything else replicated) each device sums the losses and gradients of its own rows
+    and one all-reduce of them all (a single flat vector) gives the batch's means, which every
+    device then applies to its copy of the parameters."""
+
+    def row_losses(params, model, data, keys):
+        return jax.vmap(lambda m, d, k: stage_loss(params, m, d, k, stage.name, config, truncate))(model, data, keys)
+
     def batch_loss(params, model, data, key):
-        keys = jax.random.split(key, data["mask"].shape[0])
-        total, terms = jax.vmap(
-            lambda m, d, k: stage_loss(params, m, d, k, stage.name, config, truncate)
-        )(model, data, keys)
+        total, terms = row_losses(params, model, data, jax.random.split(key, data["mask"].shape[0]))
         return jnp.mean(total), jax.tree.map(jnp.mean, terms)
 
-    @jax.jit
-    def step(params, opt_state, model, data, key):
-        (loss, terms), grads = jax.value_and_grad(batch_loss, has_aux=True)(params, model, data, key)
+    def update(params, opt_state, loss, terms, grads):
         updates, opt_state = optimizer.update(grads, opt_state, params)
         params = optax.apply_updates(params, updates)
-        gnorm = optax.global_norm(grads)
-        return params, opt_state, loss, terms, gnorm
+        return params, opt_state, loss, terms, optax.global_norm(grads)
+
+    if mesh is None or mesh.size == 1:
+
+        @jax.jit
+        def step(params, opt_state, model, data, key):
+            (loss, terms), grads = jax.value_and_grad(batch_loss, has_aux=True)(params, model, data, key)
+            return update(params, opt_state, loss, terms, grads)
+
+        return step
+
+    def local_sums(params, model, data, keys):
+        def loss(params):
+            total, terms = row_losses(params, model, data, keys)
+            return jnp.sum(total), jax.tree.map(jnp.sum, terms)
+
+        (total, terms), grads = jax.value_and_grad(loss, has_aux=True)(params)
+        flat, unflatten = ravel_pytree((total, terms, grads))
+        return unflatten(jax.lax.psum(flat, "batch"))
+
+    rows, whole = PartitionSpec("batch"), PartitionSpec()
+    sums = jax.shard_map(local_sums, mesh=mesh, in_specs=(whole, rows, rows, rows), out_specs=whole,
+                         check_vma=False)
+
+    @partial(jax.jit, out_shardings=NamedSharding(mesh, whole))
+    def step(params, opt_state, model, data, key):
+        n = data["mask"].shape[0]
+        total, terms, grads = sums(params, model, data, jax.random.split(key, n))
+        mean = partial(jax.tree.map, lambda x: x / n)
+        return update(params, opt_state, total / n, mean(terms), mean(grads))
 
     return step
 
@@ -377,22 +422,181 @@ def make_optimizer(stage: StageConfig, params, clip: float):
 
 
 # ---------------------------------------------------------------------------------------
+# data parallelism across devices and processes
+# ---------------------------------------------------------------------------------------
+
+
+def initialize_distributed(coordinator: str | None = None, num_processes: int | None = None,
+                           process_id: int | None = None) -> None:
+    """Join a multi-process (multi-host) run: a thin wrapper of :func:`jax.distributed.initialize`,
+    to be called in every process before anything else uses JAX; :func:`train` then runs
+    data-parallel over all the processes' devices.
+
+    ``coordinator`` (``HOST:PORT``: process 0's host and a free port there), ``num_processes``
+    and ``process_id`` (0 .. num_processes - 1) are given together, or all left out: JAX then
+    reads them from the cluster environment (SLURM, Open MPI, ...). On CPU the processes
+    exchange gradients through gloo, jax's default CPU collectives (no setting needed in jax 0.10).
+    """
+    given = [a is not None for a in (coordinator, num_processes, process_id)]
+    if not any(given):
+        jax.distributed.initialize()
+        return
+    if not all(given):
+        raise ValueError("initialize_distributed: give coordinator, num_processes and process_id together, "
+                         "or none of them (read from the cluster environment)")
+    if num_processes < 1 or not 0 <= process_id < num_processes:
+        raise ValueError(f"initialize_distributed: process_id {process_id} is not in 0..{num_processes - 1}")
+    jax.distributed.initialize(coordinator, num_processes, process_id)
+
+
+class DataParallel:
+    """The data-parallel layout of a run: one ``"batch"`` mesh axis over every device of every
+    process (each process's devices side by side), parameters and optimiser state replicated,
+    the rows of a batch split over the devices.
+
+    Every process draws the same global batch (one sampler state, the same in every process, so
+    the windows do not depend on the number of processes), keeps the rows of its own devices and
+    assembles the global arrays from them (:func:`jax.make_array_from_process_local_data`); the
+    jitted step's means over the batch are then those of a single-device run, up to the order of
+    the float additions. One process with one device is the plain single-device run."""
+
+    def __init__(self) -> None:
+        devices = sorted(jax.devices(), key=lambda d: (d.process_index, d.id))
+        self.mesh = Mesh(np.array(devices), ("batch",))
+        self.replicated = NamedSharding(self.mesh, PartitionSpec())
+        self.rows = NamedSharding(self.mesh, PartitionSpec("batch"))
+        self.primary = jax.process_index() == 0
+
+    def check(self, stages) -> None:
+        """A clear error for a stage whose batch the devices cannot share evenly."""
+        n = self.mesh.size
+        for s in stages:
+            if s.batch % n:
+                raise ValueError(f"stage {s.name!r}: batch {s.batch} is not divisible by the {n} devices of the "
+                                 f"data-parallel run ({jax.process_count()} process(es)); use a multiple of {n}")
+
+    def replicate(self, tree):
+        """Host values, the same in every process, as arrays replicated over the mesh."""
+        return jax.tree.map(
+            lambda x: jax.make_array_from_process_local_data(self.replicated, np.asarray(x), np.shape(x)), tree)
+
+    def split_rows(self, tree):
+        """A global batch that every process holds whole as arrays sharded by rows over the mesh:
+        each process hands over the (contiguous) rows of its own devices."""
+        n = np.shape(jax.tree.leaves(tree)[0])[0]
+        spans = [idx[0].indices(n)[:2] for idx in self.rows.addressable_devices_indices_map((n,)).values()]
+        lo, hi = min(a for a, _ in spans), max(b for _, b in spans)
+        return jax.tree.map(
+            lambda x: jax.make_array_from_process_local_data(self.rows, np.asarray(x)[lo:hi], np.shape(x)), tree)
+
+
+def _host(tree):
+    """Replicated arrays as numpy arrays (each process reads its own copy)."""
+    return jax.tree.map(np.asarray, tree)
+
+
+# ---------------------------------------------------------------------------------------
 # checkpoints and the loop
 # ---------------------------------------------------------------------------------------
 
 
+class Checkpoints:
+    """A run's checkpoints in ``out/checkpoint/<n>/`` through orbax, the latest two kept: the
+    training state (item ``state``: parameters, optimiser state or None at a stage's end, the
+    jax key) and its bookkeeping as JSON (item ``meta``: the next stage and step, the window
+    sampler's state, the validation state).
+
+    Orbax writes a checkpoint into a temporary folder and renames it once complete, so an
+    interrupted save leaves the previous checkpoint intact. Every process calls :meth:`save`
+    (orbax synchronises them; the replicated arrays and the JSON are written once), so ``out``
+    must be a folder all processes share. :meth:`restore` reads host (numpy) values, which the
+    caller places on its own mesh: a run resumes on any number of processes.
+
+    Runs started before the orbax checkpoints resume from their ``out/checkpoint.msgpack`` (flax
+    msgpack of the same fields) when ``out/checkpoint/`` holds none; their next checkpoint is an
+    orbax one."""
+
+    KEEP = 2
+
+    def __init__(self, out: Path) -> None:
+        self.legacy = out / "checkpoint.msgpack"
+        self.manager = ocp.CheckpointManager(
+            (out / "checkpoint").absolute(),
+            options=ocp.CheckpointManagerOptions(max_to_keep=self.KEEP, create=True, enable_async_checkpointing=False),
+            item_handlers={"state": ocp.PyTreeCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()},
+        )
+
+    def save(self, stage_step: tuple[int, int], params, opt_state, key, rng: np.random.Generator,
+             vstate: dict) -> None:
+        latest = self.manager.latest_step()
+        state = {
+            "params": serialization.to_state_dict(params),
+            "opt_state": None if opt_state is None else serialization.to_state_dict(opt_state),
+            "key": np.asarray(key),
+        }
+        meta = {"stage": stage_step[0], "step": stage_step[1], "rng": rng.bit_generator.state, "val": vstate}
+        self.manager.save(0 if latest is None else latest + 1,
+                          args=ocp.args.Composite(state=ocp.args.PyTreeSave(state), meta=ocp.args.JsonSave(meta)))
+
+    def restore(self) -> dict | None:
+        """The latest checkpoint as host values: ``stage``, ``step``, ``params`` and
+        ``opt_state`` (state dicts; ``opt_state`` None at a stage's start), ``key``, ``rng`` and
+        ``val`` (the sampler's and the validation state, None where not recorded); None when
+        there is no checkpoint."""
+        latest = self.manager.latest_step()
+        if latest is None:
+            return self._restore_legacy() if self.legacy.exists() else None
+        saved = self.manager.item_metadata(latest)["state"].tree
+        as_numpy = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), saved)
+        got = self.manager.restore(latest, args=ocp.args.Composite(
+            state=ocp.args.PyTreeRestore(restore_args=as_numpy), meta=ocp.args.JsonRestore()))
+        meta = got["meta"]
+        return {"stage": int(meta["stage"]), "step": int(meta["step"]), "rng": meta["rng"], "val": meta["val"],
+                **got["state"]}
+
+    def _restore_legacy(self) -> dict:
+        raw = serialization.msgpack_restore(self.legacy.read_bytes())
+        return {"stage": int(raw["stage"]), "step": int(raw["step"]), "params": raw["params"],
+                "opt_state": raw["opt_state"], "key": np.asarray(raw["key"]),
+                "rng": json.loads(raw["rng"]) if raw.get("rng") else None,
+                "val": json.loads(raw["val"]) if raw.get("val") else None}
+
+    def close(self) -> None:
+        self.manager.close()
+
+
 def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | None = None) -> dict:
-    """Run (or resume) the staged training; returns the final parameters."""
+    """Run (or resume) the staged training; returns the final parameters (numpy arrays).
+
+    In a multi-process run (:func:`initialize_distributed` first) every process calls this with
+    the same config and archives; process 0 alone writes the log, the config, the parameter
+    files and shows progress, all of them write the checkpoints together (:class:`Checkpoints`)."""
+    dp = DataParallel()
+    dp.check(config.stages)
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "config.json").write_text(json.dumps(config.to_json(), indent=2))
+    if dp.primary:
+        (out / "config.json").write_text(json.dumps(config.to_json(), indent=2))
     data = TrainingSet.load(config.data, config) if data is None else data
     val = TrainingSet.load(config.val_data, config) if config.val_data else None
     validate = make_validation(config.cycle) if val is not None else None
-    ckpt_path = out / "checkpoint.msgpack"
+    checkpoints = Checkpoints(out)
+    log = open(out / "log.jsonl", "a") if dp.primary else None
+    try:
+        return _train_loop(config, dp, checkpoints, log, data, val, validate, progress)
+    finally:
+        checkpoints.close()
+        if log is not None:
+            log.close()
+
+
+def _train_loop(config: TrainConfig, dp: DataParallel, checkpoints: Checkpoints, log, data, val, validate,
+                progress: bool) -> dict:
+    out = Path(config.out)
+    restored = checkpoints.restore()
     key = jax.random.PRNGKey(config.seed)
     params = init_params(key, data.models[0], config.cycle)
-    if config.init is not None and not ckpt_path.exists():
+    if config.init is not None and restored is None:
         start = load_params(config.init)
         unknown = set(start) - set(params)
         if unknown:
@@ -406,25 +610,29 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
             if not all(jax.tree.leaves(same)):
                 raise ValueError(f"{config.init}: network {name!r} has other shapes than this config's")
             params[name] = new
-    state = {"stage": 0, "step": 0, "params": params, "opt_state": None, "key": np.asarray(key)}
-    if ckpt_path.exists():
-        restored = serialization.msgpack_restore(ckpt_path.read_bytes())
-        state["stage"], state["step"] = int(restored["stage"]), int(restored["step"])
-        state["params"] = serialization.from_state_dict(params, restored["params"])
-        state["key"] = np.asarray(restored["key"])
-        state["opt_state"] = restored["opt_state"]
-    log = open(out / "log.jsonl", "a")
+    state = {"stage": 0, "step": 0, "opt_state": None}
+    if restored is not None:
+        state.update(stage=restored["stage"], step=restored["step"], opt_state=restored["opt_state"])
+        params = serialization.from_state_dict(params, restored["params"])
+        key = restored["key"]
     # the window sampler's state is checkpointed, so a resumed run draws exactly the windows an
     # uninterrupted one would have (checkpoints without it: reseeded from the stage and step)
     rng = np.random.default_rng(config.seed + 1000 * state["stage"] + state["step"])
-    if ckpt_path.exists() and restored.get("rng"):
-        rng.bit_generator.state = json.loads(restored["rng"])
+    if restored is not None and restored["rng"]:
+        rng.bit_generator.state = restored["rng"]
     # validation bookkeeping (best MPJPE and its stage/step, checks without improvement)
     vstate = {"best": None, "stage": None, "step": None, "bad": 0}
-    if ckpt_path.exists() and restored.get("val"):
-        vstate = json.loads(restored["val"])
-    params = state["params"]
-    key = jnp.asarray(state["key"])
+    if restored is not None and restored["val"]:
+        vstate = restored["val"]
+    best = {}  # the best parameters validated by this process (host values), for an early stop
+    params = dp.replicate(params)
+    key = jnp.asarray(key)
+
+    def write_log(rec: dict) -> None:
+        if log is not None:
+            log.write(json.dumps(rec) + "\n")
+            log.flush()
+
     try:
         from tqdm import tqdm
     except ImportError:  # pragma: no cover
@@ -432,30 +640,35 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
     for si in range(state["stage"], len(config.stages)):
         stage = config.stages[si]
         optimizer = make_optimizer(stage, params, config.clip_grad_norm)
-        opt_state = optimizer.init(params)
+        opt_state = optimizer.init(_host(params))
         start = 0
         if si == state["stage"] and state["opt_state"] is not None:
             opt_state = serialization.from_state_dict(opt_state, state["opt_state"])
             start = state["step"]
+        opt_state = dp.replicate(opt_state)
         stage_cycle = dataclasses.replace(config.cycle, **stage.cycle)
-        step_fn = make_step(stage, stage_cycle, optimizer, config.truncate_gradient)
-        bar = tqdm(total=stage.steps, initial=start, desc=stage.name, disable=not progress) if tqdm else None
+        step_fn = make_step(stage, stage_cycle, optimizer, config.truncate_gradient, mesh=dp.mesh)
+        show = progress and dp.primary
+        bar = tqdm(total=stage.steps, initial=start, desc=stage.name, disable=not show) if tqdm else None
         t0 = time.time()
         checks = validate is not None and "tpnet" in STAGE_TRAINS[stage.name]
         vbatches = _validation_windows(val, config.val_windows, stage.batch, stage.frames) if checks else []
 
         def check(params, step, vbatches=vbatches, stage=stage):
-            """Validate; returns True when the stage should stop early."""
-            tot = [validate(params, m, d) for m, d in vbatches]
+            """Validate (every process, on its own copy of the parameters); returns True when the
+            stage should stop early."""
+            host = _host(params)
+            tot = [validate(host, m, d) for m, d in vbatches]
             mpjpe = 1000.0 * float(sum(a for a, _ in tot)) / max(float(sum(b for _, b in tot)), 1.0)
             if vstate["best"] is None or mpjpe < vstate["best"]:
                 vstate.update(best=mpjpe, stage=stage.name, step=step, bad=0)
-                save_params(out / "params_best.msgpack", params)
+                best["params"] = host
+                if dp.primary:
+                    save_params(out / "params_best.msgpack", host)
             else:
                 vstate["bad"] += 1
-            log.write(json.dumps({"stage": stage.name, "step": step, "val_mpjpe_mm": round(mpjpe, 3),
-                                  "best_mm": round(vstate["best"], 3)}) + "\n")
-            log.flush()
+            write_log({"stage": stage.name, "step": step, "val_mpjpe_mm": round(mpjpe, 3),
+                       "best_mm": round(vstate["best"], 3)})
             return config.patience > 0 and vstate["bad"] >= config.patience
 
         if start == 0:
@@ -463,48 +676,34 @@ def train(config: TrainConfig, *, progress: bool = True, data: TrainingSet | Non
             if checks:  # the starting point (a fine-tuning run's init, or the previous stage's end)
                 check(params, 0)
         for it in range(start, stage.steps):
-            model, batch = data.sample(rng, stage.batch, stage.frames)
+            model, batch = dp.split_rows(data.sample(rng, stage.batch, stage.frames))
             key, sub = jax.random.split(key)
-            params, opt_state, loss, terms, gnorm = step_fn(params, opt_state, model, batch, sub)
+            params, opt_state, loss, terms, gnorm = step_fn(params, opt_state, model, batch, dp.replicate(sub))
             if (it + 1) % config.log_every == 0 or it + 1 == stage.steps:
                 rec = {"stage": stage.name, "step": it + 1, "loss": float(loss), "grad_norm": float(gnorm),
                        "time_s": round(time.time() - t0, 2), **{k: float(v) for k, v in terms.items()}}
                 if not np.isfinite(rec["loss"]):
                     raise FloatingPointError(f"non-finite loss at stage {stage.name} step {it + 1}: {rec}")
-                log.write(json.dumps(rec) + "\n")
-                log.flush()
+                write_log(rec)
                 if bar:
                     bar.set_postfix(loss=f"{rec['loss']:.4g}")
             if bar:
                 bar.update(1)
             last = it + 1 == stage.steps
             if checks and ((it + 1) % config.val_every == 0 or last) and check(params, it + 1) and not last:
-                last = True  # early stop: go on from the best parameters
-                params = serialization.from_state_dict(params, load_params(out / "params_best.msgpack"))
-                log.write(json.dumps({"stage": stage.name, "step": it + 1, "early_stop": True,
-                                      "best_step": vstate["step"]}) + "\n")
-                log.flush()
+                last = True  # early stop: go on from the best parameters (of before a resume: their file)
+                kept = best.get("params") or load_params(out / "params_best.msgpack")
+                params = dp.replicate(serialization.from_state_dict(_host(params), kept))
+                write_log({"stage": stage.name, "step": it + 1, "early_stop": True, "best_step": vstate["step"]})
             if (it + 1) % config.checkpoint_every == 0 or last:
                 nxt = (si + 1, 0) if last else (si, it + 1)
-                _save_checkpoint(ckpt_path, nxt, params, None if last else opt_state, key, rng, vstate)
+                checkpoints.save(nxt, params, None if last else opt_state, key, rng, vstate)
             if last:
                 break
         if bar:
             bar.close()
-        save_params(out / f"params_{stage.name}.msgpack", params)
-    save_params(out / "params.msgpack", params)
-    log.close()
-    return params
-
-
-def _save_checkpoint(path: Path, stage_step, params, opt_state, key, rng=None, vstate=None) -> None:
-    payload = {
-        "rng": "" if rng is None else json.dumps(rng.bit_generator.state),
-        "val": "" if vstate is None else json.dumps(vstate),
-        "stage": stage_step[0],
-        "step": stage_step[1],
-        "params": serialization.to_state_dict(jax.tree.map(np.asarray, params)),
-        "opt_state": None if opt_state is None else serialization.to_state_dict(jax.tree.map(np.asarray, opt_state)),
-        "key": np.asarray(key),
-    }
-    atomic_write(path, serialization.msgpack_serialize(payload))
+        if dp.primary:
+            save_params(out / f"params_{stage.name}.msgpack", params)
+    if dp.primary:
+        save_params(out / "params.msgpack", params)
+    return _host(params)
