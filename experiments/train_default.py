@@ -19,8 +19,10 @@
    ``configs/tpnet_mixed4.json`` continues that run (its runs/mixed3/params.msgpack) on those
    two and data/train_ext3 (1500 more, seed 11): the weights shipped since stop 42
    (docs/method.md, "Staged training").
-2. Runs the staged training of the config (resumable: re-running continues from
-   runs/default/checkpoint.msgpack; progress in runs/default/log.jsonl). The shipped weights of
+2. Runs the staged training of the config (resumable: re-running continues from the orbax
+   checkpoint in runs/default/checkpoint/, or a run's older checkpoint.msgpack; progress in
+   runs/default/log.jsonl; on several hosts: ``jmocap train --config ... --coordinator ...``,
+   docs/performance.md section 10). The shipped weights of
    2026-12-04 continued the first TPNet stage of a default.json run with
    ``--config experiments/configs/tpnet_finetune.json`` (its ``init``: that run's
    runs/default/params_tpnet.msgpack), i.e. default.json's later stages (docs/method.md).

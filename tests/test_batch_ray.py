@@ -46,14 +46,12 @@ from test_batch import (  # noqa: E402,F401  (fixtures: params, clips, input_fol
     synth,
 )
 
+# for the processes of the loopback cluster (``ray start``, the CLI's driver): Ray 2.5x starts a
+# cluster with token authentication, and a process joining it must say so to send the token
+# (~/.ray/auth_token, one file on this machine). This process's own local Ray (the first test)
+# needs nothing: Ray reads the variable when it is imported, and its local instance agrees with it.
 ENV = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "token"}
 WORKER = "MapBatches(_Worker)"  # the process title of a reconstruction actor
-
-
-@pytest.fixture(autouse=True)
-def _ray_env(monkeypatch):
-    for k, v in ENV.items():
-        monkeypatch.setenv(k, v)
 
 
 def same_results(a: Path, b: Path) -> list[str]:
@@ -119,6 +117,8 @@ def cluster(tmp_path_factory):
     address = f"127.0.0.1:{port}"
     temp = tmp_path_factory.mktemp("ray")
     common = ["--node-ip-address", "127.0.0.1", "--num-cpus", "1", "--disable-usage-stats"]
+    # the cluster's token (kept if there is one): what `ray start` and the driver read
+    subprocess.run([ray_bin, "get-auth-token", "--generate"], env=env, check=True, capture_output=True, timeout=120)
     try:
         subprocess.run([ray_bin, "start", "--head", "--port", str(port), "--include-dashboard", "false",
                         "--temp-dir", str(temp), *common], env=env, check=True, capture_output=True, timeout=120)

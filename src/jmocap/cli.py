@@ -10,7 +10,8 @@ is one decorated function::
         p.set_defaults(func=run_demo)     # run_demo(args) -> int | None
 
 Commands: ``data synth`` (synthetic clip archives), ``data info`` (summarise an archive),
-``reconstruct`` (batch reconstruction of an archive), ``eval`` (the metrics table of methods
+``reconstruct`` (batch reconstruction of an archive; ``--engine ray`` on a Ray cluster), ``train``
+(the staged training of the networks, on one or several processes), ``eval`` (the metrics table of methods
 over an archive with ground truth), ``render`` (video and force plots of a result), ``export``
 (OpenSim, glTF and BVH files of results), ``view`` (a self-contained HTML viewer page),
 ``score`` (results against 3D ground truth with any subset of joints), ``video`` (from a video
