@@ -170,16 +170,16 @@ class _Worker:
                 out["status"][i], out["error"][i] = "failed", str(batch["error"][i])
                 continue
             t = time.perf_counter()
-            clip, notes, checked = pickle.loads(batch["clip"][i])
+            clip, notes, checked = pickle.loads(batch["clip"][i])  # what this run's reader pickled
             where = str(batch["where"][i])
-            out["frames"][i] = clip.num_frames
             try:
                 clip, checked = place_camera(clip, self.config, self.floor, where, checked)
-            except Exception as e:  # noqa: BLE001
+            except Exception as e:  # noqa: BLE001 - a reading failure, as the local engine's (no frames)
                 out["status"][i], out["error"][i] = "failed", _message(e, where)
                 continue
             finally:
                 out["seconds"][i] += time.perf_counter() - t
+            out["frames"][i] = clip.num_frames
             groups.setdefault(str(batch["key"][i]), []).append((i, clip, notes + checked, where))
         for group in groups.values():
             for s in range(0, len(group), self.engine.group_size):
@@ -241,7 +241,10 @@ def reconstruct_archive_ray(
     """:func:`jmocap.batch.reconstruct_archive` on a Ray cluster (module docstring): the same
     arguments, results, resume and errors, plus ``ray_options`` (where and how wide). Connects to
     ``ray_options.address`` (a running cluster) or starts a local one for the run. Returns the
-    summary (also ``output/summary.json``, with ``"engine": "ray"`` and the cluster's resources)."""
+    summary (also ``output/summary.json``, with ``"engine": "ray"`` and the cluster's resources).
+    Raises RuntimeError (one line) when Ray itself fails mid-run (a lost node, a worker that died
+    more often than Ray retries), after the finished results and the summary (its ``error``) are
+    written: the same command resumes."""
     ray = _ray()
     t0 = time.perf_counter()
     identity = run_identity(params, config, method)
@@ -249,6 +252,7 @@ def reconstruct_archive_ray(
     output = Path(output)
     run = {"ok": 0, "failed": 0, "frames": 0}
     interrupted: BaseException | None = None
+    lost: BaseException | None = None
     started = False
     with contextlib.ExitStack() as stack:
         with L.use(limits):
@@ -278,6 +282,8 @@ def reconstruct_archive_ray(
                         _record(writer, row, where, options, run, bar)
         except (KeyboardInterrupt, Interrupted) as e:
             interrupted = e  # the results already written stay; the summary says so
+        except ray.exceptions.RayError as e:  # the cluster itself failed (a node lost, retries spent)
+            lost = e
         finally:
             if started:
                 ray.shutdown()
@@ -303,9 +309,15 @@ def reconstruct_archive_ray(
         "params_sha256": identity["params_sha256"],
         "version": jmocap.__version__,
     }
+    if lost is not None:
+        summary["error"] = " ".join(str(lost).split())[:2000]
     atomic_write(output / SUMMARY, (json.dumps(summary, indent=2) + "\n").encode())
     if interrupted is not None:
         raise interrupted
+    if lost is not None:
+        first = (str(lost).strip().splitlines() or [type(lost).__name__])[0]
+        raise RuntimeError(f"{output}: the Ray run stopped ({type(lost).__name__}: {first}); the finished "
+                           "results are written, run the same command again to resume") from None
     return summary
 
 
