@@ -36,7 +36,6 @@ import contextlib
 import dataclasses
 import json
 import os
-import pickle
 import signal
 import tempfile
 import time
@@ -93,6 +92,14 @@ class RayOptions:
     readers: int = 1  # reading actors (no CPU reserved: see _rows)
 
 
+def _objects(items: list) -> np.ndarray:
+    """A 1-D object array of ``items`` (tuples stay elements): a Ray Data column of Python objects."""
+    out = np.empty(len(items), dtype=object)
+    for i, x in enumerate(items):
+        out[i] = x
+    return out
+
+
 def _plan_key(plan: tuple[int, ...]) -> str:
     """A sortable string of a chunk plan (equal plans, equal keys)."""
     return ",".join(f"{n:08d}" for n in plan)
@@ -128,15 +135,15 @@ class _Reader:
                     got = read_clip(src, self.config, self.options)
                 keys.append(_plan_key(clip_plan(self.method, got[0].num_frames, self.options.chunk,
                                                 self.options.bucket)))
-                clips.append(pickle.dumps(got, protocol=5))
+                clips.append(got)
                 errors.append("")
             except Exception as e:  # noqa: BLE001 - recorded as the clip's failure
                 keys.append(_FAILED)
-                clips.append(b"")
+                clips.append(None)
                 errors.append(_message(e, src.where))
             seconds.append(time.perf_counter() - t)
         return {"name": batch["name"], "where": batch["where"], "key": np.asarray(keys),
-                "clip": np.asarray(clips, dtype=object), "error": np.asarray(errors), "seconds": np.asarray(seconds)}
+                "clip": _objects(clips), "error": np.asarray(errors), "seconds": np.asarray(seconds)}
 
     def __del__(self):
         with contextlib.suppress(Exception):
@@ -150,7 +157,7 @@ class _Worker:
     def __init__(self, params, config, method: str, options: BatchOptions, identity: dict[str, str],
                  host_devices: int):
         if host_devices > 1:  # a CPU worker of several CPUs: one host device per CPU, as the local engine
-            from jmocap.cli import set_host_devices
+            from jmocap.pipeline import set_host_devices
 
             set_host_devices(host_devices)
         from jmocap.pipeline import FloorEstimator, Reconstructor
@@ -162,7 +169,7 @@ class _Worker:
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         n = len(batch["name"])
-        out: dict[str, list] = {"status": [""] * n, "payload": [b""] * n, "error": [""] * n,
+        out: dict[str, list] = {"status": [""] * n, "payload": [None] * n, "error": [""] * n,
                                 "seconds": [float(s) for s in batch["seconds"]], "frames": [0] * n}
         groups: dict[str, list[tuple[int, Any, list[str], str]]] = {}
         for i in range(n):
@@ -170,7 +177,7 @@ class _Worker:
                 out["status"][i], out["error"][i] = "failed", str(batch["error"][i])
                 continue
             t = time.perf_counter()
-            clip, notes, checked = pickle.loads(batch["clip"][i])  # what this run's reader pickled
+            clip, notes, checked = batch["clip"][i]  # (Ray carries Python objects between its actors)
             where = str(batch["where"][i])
             try:
                 clip, checked = place_camera(clip, self.config, self.floor, where, checked)
@@ -185,7 +192,7 @@ class _Worker:
             for s in range(0, len(group), self.engine.group_size):
                 self._compute(group[s:s + self.engine.group_size], out)
         return {"name": batch["name"], "status": np.asarray(out["status"]),
-                "payload": np.asarray(out["payload"], dtype=object), "error": np.asarray(out["error"]),
+                "payload": _objects(out["payload"]), "error": np.asarray(out["error"]),
                 "seconds": np.asarray(out["seconds"]), "frames": np.asarray(out["frames"])}
 
     def _compute(self, group, out) -> None:
@@ -208,7 +215,7 @@ class _Worker:
                 arrays, extra = result_record(clip, res, self.engine, self.identity, where, notes)
                 if self.options.bvh:
                     extra["bvh_bytes"] = _bvh_bytes(clip, res["q"])
-                out["status"][i], out["payload"][i] = "ok", pickle.dumps((arrays, extra), protocol=5)
+                out["status"][i], out["payload"][i] = "ok", (arrays, extra)
             except Exception as e:  # noqa: BLE001
                 out["status"][i], out["error"][i] = "failed", _message(e, where)
             out["seconds"][i] += share + time.perf_counter() - t
@@ -370,7 +377,7 @@ def _record(writer: ResultWriter, row: dict, where: dict[str, str], options: Bat
     name = str(row["name"])
     seconds = round(float(row["seconds"]), 4)
     if row["status"] == "ok":
-        arrays, extra = pickle.loads(row["payload"])
+        arrays, extra = row["payload"]
         try:
             bvh = extra.pop("bvh_bytes", None)
             if bvh is not None:

@@ -660,30 +660,10 @@ def _limit_defaults() -> dict[str, int]:
 
 
 def set_host_devices(n: int) -> bool:
-    """Ask for ``n`` host CPU devices (0: one per core) before JAX starts its backends.
+    """:func:`jmocap.pipeline.set_host_devices` (kept here: the commands' name for it)."""
+    from jmocap.pipeline import set_host_devices as _set
 
-    XLA's CPU backend runs one device's program on one thread, so the batch engine, which shards
-    its clips over every local device, uses all cores only with several host devices. Returns
-    whether the setting took effect: not when a backend is already running (e.g. the command is
-    called from a process that has used JAX, or ``XLA_FLAGS`` already force a device count and
-    ``n`` is 0); an explicit ``n > 1`` that cannot be applied raises ``ValueError``.
-    """
-    import os
-
-    import jax
-
-    if n == 0 and "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
-        return False  # the user's XLA_FLAGS already say how many
-    want = n or (os.cpu_count() or 1)
-    if want <= 1:
-        return False
-    try:
-        jax.config.update("jax_num_cpu_devices", want)
-    except RuntimeError as e:  # backends already initialised in this process
-        if n > 1 and len(jax.devices("cpu")) != want:
-            raise ValueError(f"--host-devices {n}: JAX is already running in this process ({e})") from e
-        return False
-    return True
+    return _set(n)
 
 
 def cmd_reconstruct(args) -> int:
