@@ -21,25 +21,12 @@ import jax
 import numpy as np
 
 from jmocap.train import TrainConfig, TrainingSet, initialize_distributed, train
+from test_train import (  # (this script runs from tests/: an interruption mid-stage)
+    _Interrupted,
+    _StopAfter,
+)
 
 INTERRUPTED = 3
-
-
-class Interrupted(Exception):
-    pass
-
-
-class StopAfter:
-    """A TrainingSet whose sampler raises after ``n`` batches."""
-
-    def __init__(self, data: TrainingSet, n: int):
-        self.data, self.n, self.models = data, n, data.models
-
-    def sample(self, rng, batch, frames):
-        if self.n == 0:
-            raise Interrupted
-        self.n -= 1
-        return self.data.sample(rng, batch, frames)
 
 
 def main(argv=None) -> int:
@@ -55,10 +42,10 @@ def main(argv=None) -> int:
     config = TrainConfig.from_json(json.loads(Path(args.config).read_text()))
     data = TrainingSet.load(config.data, config)
     if args.stop_after is not None:
-        data = StopAfter(data, args.stop_after)
+        data = _StopAfter(data, args.stop_after)
     try:
         params = train(config, progress=False, data=data)
-    except Interrupted:
+    except _Interrupted:
         return INTERRUPTED
     np.savez(args.result, **{f"leaf_{i}": x for i, x in enumerate(jax.tree.leaves(params))})
     return 0

@@ -509,7 +509,7 @@ def test_two_devices_shard_the_batch(xla_cache, first_run, params, input_folder,
     is the target pose that the one-device run also returns)."""
     out1, _, _ = first_run
     out = tmp_path / "out"
-    cmd, env = cli(tmp_path, params, input_folder, out, "--batch", "1", "--kinematic-only",
+    cmd, env = cli(tmp_path, params, input_folder, out, "--batch", "1", "--method", "kinematic",
                    "--host-devices", "2", cache=xla_cache)
     run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 1, run.stderr  # the broken clips fail, as on one device

@@ -41,6 +41,7 @@ from jmocap.train import (
     train,
 )
 from jmocap.weights import load_params
+from test_train import _Interrupted, _StopAfter  # an interruption mid-stage
 
 TESTS = Path(__file__).resolve().parent
 WORKER = TESTS / "distributed_worker.py"
@@ -201,21 +202,6 @@ def test_checkpoint_of_two_processes_resumes_in_one(xla_cache, archive, referenc
     resumed = train(config, progress=False)
     _assert_close(_leaves(resumed), ref_params)
     assert [(r["stage"], r["step"]) for r in _log(out)] == [(r["stage"], r["step"]) for r in _log(ref_out)]
-
-
-class _Interrupted(Exception):
-    pass
-
-
-class _StopAfter:
-    def __init__(self, data, n):
-        self.data, self.n, self.models = data, n, data.models
-
-    def sample(self, rng, batch, frames):
-        if self.n == 0:
-            raise _Interrupted
-        self.n -= 1
-        return self.data.sample(rng, batch, frames)
 
 
 @pytest.mark.slow  # two processes: 45-65 s on 2 busy cores

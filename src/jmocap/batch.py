@@ -315,19 +315,9 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
         names = [s.name for s in sources]
         entries = [writer.entries[n] for n in names if n in writer.entries]
         skipped_files = list(getattr(sources, "skipped", []))
-    summary = {
-        **run_summary(input, output, names, entries, run, skipped, time.perf_counter() - t0),
-        "skipped_files": len(skipped_files),
-        "skipped": skipped_files[:100],
-        "interrupted": None if interrupted is None else (
-            "SIGINT" if isinstance(interrupted, KeyboardInterrupt) else signal.Signals(interrupted.signum).name
-        ),
-        "devices": [str(d) for d in engine.devices],
-        "options": {**{f.name: getattr(options, f.name) for f in dataclasses.fields(options)},
-                    "image_size": settings["image_size"], "scene": settings.get("scene")},
-        "params_sha256": identity["params_sha256"],
-        "version": jmocap.__version__,
-    }
+    summary = archive_summary(input, output, names, entries, run, skipped, time.perf_counter() - t0,
+                              skipped_files, interrupted, options, settings,
+                              devices=[str(d) for d in engine.devices])
     atomic_write(Path(output) / SUMMARY, (json.dumps(summary, indent=2) + "\n").encode())
     if interrupted is not None:
         raise interrupted
@@ -362,6 +352,27 @@ def result_record(clip: Clip, res: dict[str, np.ndarray], engine: Reconstructor,
     if res.get("diagnostics") is not None:  # a solver's per-clip report (e.g. ``trajopt``)
         extra["diagnostics"] = {k: round(float(v), 6) for k, v in res["diagnostics"].items()}
     return arrays, extra
+
+
+def archive_summary(input, output, names, entries, run: dict, skipped: int, elapsed: float, skipped_files: list,
+                    interrupted: BaseException | None, options: BatchOptions, settings: dict[str, Any],
+                    **engine: Any) -> dict[str, Any]:
+    """``summary.json`` of a 2D archive run (docs/formats.md): :func:`run_summary`, what the scan
+    skipped, the signal that stopped it, its options and weights, then the ``engine``'s own
+    fields (the local engine's ``devices``; :mod:`jmocap.batch_ray`'s ``engine`` and ``ray``)."""
+    return {
+        **run_summary(input, output, names, entries, run, skipped, elapsed),
+        "skipped_files": len(skipped_files),
+        "skipped": skipped_files[:100],
+        "interrupted": None if interrupted is None else (
+            "SIGINT" if isinstance(interrupted, KeyboardInterrupt) else signal.Signals(interrupted.signum).name
+        ),
+        **engine,
+        "options": {**{f.name: getattr(options, f.name) for f in dataclasses.fields(options)},
+                    "image_size": settings["image_size"], "scene": settings.get("scene")},
+        "params_sha256": settings["params_sha256"],
+        "version": jmocap.__version__,
+    }
 
 
 def run_summary(input, output, names, entries, run: dict, skipped: int, elapsed: float) -> dict[str, Any]:
@@ -532,6 +543,7 @@ __all__ = [
     "BatchOptions",
     "Interrupted",
     "adapt_layout",
+    "archive_summary",
     "check_clip",
     "place_camera",
     "read_clip",

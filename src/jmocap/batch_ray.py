@@ -36,7 +36,6 @@ import contextlib
 import dataclasses
 import json
 import os
-import signal
 import tempfile
 import time
 import warnings
@@ -46,7 +45,6 @@ from typing import Any
 
 import numpy as np
 
-import jmocap
 from jmocap import methods
 from jmocap.batch import (
     BatchOptions,
@@ -54,12 +52,12 @@ from jmocap.batch import (
     _message,
     _output_folder,
     _signals_raise,
+    archive_summary,
     place_camera,
     read_clip,
     result_record,
     run_identity,
     run_settings,
-    run_summary,
 )
 from jmocap.data import limits as L
 from jmocap.data.archive import ArchiveError
@@ -299,23 +297,13 @@ def reconstruct_archive_ray(
         names = [s.name for s in sources]
         entries = [writer.entries[n] for n in names if n in writer.entries]
         skipped_files = list(getattr(sources, "skipped", []))
-    summary = {
-        **run_summary(input, output, names, entries, run, skipped, time.perf_counter() - t0),
-        "skipped_files": len(skipped_files),
-        "skipped": skipped_files[:100],
-        "interrupted": None if interrupted is None else (
-            "SIGINT" if isinstance(interrupted, KeyboardInterrupt) else signal.Signals(interrupted.signum).name
-        ),
-        "engine": "ray",
-        # seconds from the run's start: Ray connected (start_s), the first result written
-        # (first_result_s: reading, sorting, the workers' start and compilation); read_s: reading and sorting
-        "ray": {**dataclasses.asdict(ray_options), "timing": timing,
-                "cluster_resources": {k: v for k, v in resources.items() if k in ("CPU", "GPU", "memory")}},
-        "options": {**{f.name: getattr(options, f.name) for f in dataclasses.fields(options)},
-                    "image_size": settings["image_size"], "scene": settings.get("scene")},
-        "params_sha256": identity["params_sha256"],
-        "version": jmocap.__version__,
-    }
+    # seconds from the run's start: Ray connected (start_s), the first result written
+    # (first_result_s: reading, sorting, the workers' start and compilation); read_s: reading and sorting
+    summary = archive_summary(
+        input, output, names, entries, run, skipped, time.perf_counter() - t0, skipped_files, interrupted, options,
+        settings, engine="ray", ray={**dataclasses.asdict(ray_options), "timing": timing, "cluster_resources": {
+            k: v for k, v in resources.items() if k in ("CPU", "GPU", "memory")}},
+    )
     if lost is not None:
         summary["error"] = " ".join(str(lost).split())[:2000]
     atomic_write(output / SUMMARY, (json.dumps(summary, indent=2) + "\n").encode())
