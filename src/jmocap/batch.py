@@ -327,12 +327,13 @@ def _reconstruct_archive(input, output, params, config, options, *, method, prog
 def result_record(clip: Clip, res: dict[str, np.ndarray], engine: Reconstructor, identity: dict[str, str],
                   where: str, warnings: Sequence[str]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """A clip's result file arrays (:func:`jmocap.results.result_arrays`) and the fields of its
-    manifest line (all but ``seconds`` and ``bvh``), from the engine's result ``res``. Raises
+    manifest line (all but ``seconds`` and ``bvh``), from the engine's result ``res``; the result's
+    method is the run's (``identity["method"]``: a variant's name, not its base method's). Raises
     :class:`~jmocap.results.ReconstructionError` (file, frame, field) for a non-finite result."""
     check_finite(res, where)
     height, model = subject_height(clip), subject_model(clip)
     arrays = result_arrays(
-        clip, res, method=engine.method.name, height_m=height, mass_kg=model.total_mass,
+        clip, res, method=identity["method"], height_m=height, mass_kg=model.total_mass,
         forces_estimated=engine.method.estimates_forces, identity=identity, source=where,
         assumed=assumed_fields(clip), warnings=list(warnings),
         height_source=clip.meta.get("height_source"),
