@@ -587,6 +587,19 @@ def test_results_do_not_depend_on_batch_mates(params, clips, tmp_path):
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
+def test_a_variant_names_itself_in_its_results(params, clips, tmp_path):
+    """A run of a variant (``physionical``: ``physcap`` with other config fields) records the
+    variant's name in its results and manifest, not its base method's. (The config here is the
+    tests' ``SMALL``, so the compiled program is ``first_run``'s: only the naming is checked.)"""
+    src = tmp_path / "in"
+    src.mkdir()
+    save_clip(src / "short.npz", clips["short"])
+    out = tmp_path / "out"
+    _reconstruct_archive(src, out, params, SMALL, OPTS, method="physionical")
+    assert str(load_result(out / "short.npz")["method"]) == "physionical"
+    assert json.loads((out / "archive.json").read_text())["method"] == "physionical"
+
+
 def test_output_folder_problems_are_one_line_errors(params, input_folder, tmp_path):
     from jmocap.data.archive import ArchiveError
 
