@@ -349,11 +349,14 @@ def _rows(ray, todo, input, output, params, config, method, options, ray_options
         env["JAX_COMPILATION_CACHE_DIR"] = str(jax.config.jax_compilation_cache_dir)
     # (Ray Data restarts a worker that dies and runs its batch again: its actors' default
     # max_restarts / max_task_retries are -1)
+    # a worker's devices: its GPUs, else one host device per CPU; each call fills them all
+    # (options.batch clips per device, as the local engine's groups)
+    gpus, host_devices = ray_options.gpus_per_worker, int(ray_options.cpus_per_worker)
+    devices = max(1, int(gpus)) if gpus else max(1, host_devices)
     ds = ds.map_batches(
         _Worker, fn_constructor_kwargs=dict(params=params, config=config, method=method, options=options,
-                                            identity=identity, host_devices=0 if ray_options.gpus_per_worker
-                                            else int(ray_options.cpus_per_worker)),
-        batch_size=options.batch, compute=ray.data.ActorPoolStrategy(size=workers),
+                                            identity=identity, host_devices=0 if gpus else host_devices),
+        batch_size=options.batch * devices, compute=ray.data.ActorPoolStrategy(size=workers),
         num_cpus=ray_options.cpus_per_worker, num_gpus=ray_options.gpus_per_worker or None,
         runtime_env={"env_vars": env} if env else None, batch_format="numpy",
     )
