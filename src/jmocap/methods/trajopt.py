@@ -77,7 +77,7 @@ from jmocap.methods.kinematic import LEARNED_STAGE_FIELDS, KinematicConfig
 from jmocap.methods.kinematic import init_params as init_tpnet_params
 from jmocap.model import Model
 from jmocap.motion import Motion
-from jmocap.physics.linalg import cho_solve, cholesky
+from jmocap.physics.linalg import banded_solve, cho_solve, cholesky
 from jmocap.physics.qp import friction_pyramid_edges
 from jmocap.physics.rotations import quat_error, quat_exp, quat_mul, quat_normalize
 from jmocap.scene import Scene, sdf
@@ -96,7 +96,8 @@ class TrajOptConfig(KinematicConfig):
     frame_iterations: int = static(30)  # Levenberg-Marquardt iterations of the per-frame fit
     frame_tile: int = static(64)  # frames per tile of the per-frame fit (per_frame_fit's tile; 0: all at once)
     min_keypoints: int = static(8)  # confident keypoints a frame needs to be fitted on its own
-    kinematic_iterations: int = static(60)  # L-BFGS iterations of the whole-clip kinematic fit
+    kinematic_iterations: int = static(60)  # iterations of the whole-clip kinematic fit
+    kinematic_solver: str = static("lbfgs")  # its optimiser: "lbfgs" or "gauss_newton" (Levenberg-Marquardt)
     physics_iterations: int = static(80)  # L-BFGS iterations of the physics stage
     memory: int = static(10)  # L-BFGS history
     # the L-BFGS line search: "zoom" (optax's default, strong Wolfe conditions) or "backtracking"
@@ -720,27 +721,21 @@ def diagonal_scale(model: Model, x: Trajectory, prob: Problem, config: TrajOptCo
     return Trajectory(s[:, :3], s[:, 3:6], s[:, 6:])
 
 
-def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, config: TrajOptConfig,
-                     depth: Array | None = None, contacts: Array | None = None, scene: Scene | None = None):
-    """One frame's residuals and their Jacobians with respect to a step ``dq`` (nv,) of the
-    configuration (``q (+) dq``, :func:`jmocap.physics.integrate_positions`), from one
-    forward-kinematics pass (the analytic point Jacobians): the projected joints (J, 2) in
-    pixels with (J, 2, nv), and the weighted prior residuals (pose prior, joint limits, floor)
-    whose squares are their terms of the per-frame objective, with their Jacobian. With
-    ``depth`` (the frame's log-depth target, :func:`depth_track`) the prior residuals end with
-    ``sqrt(w_depth) (log z - depth) / depth_sigma`` of the root's camera depth ``z``. With
-    ``contacts`` (4,), the frame's contact labels, they end with the robust height residuals of
-    the labelled sites' sole points, :func:`robust_height`. Sole heights are above the
-    ``scene``'s terrain (:func:`surface_heights_and_normals`: their Jacobian is the surface
-    normal's component of the points' Jacobians)."""
-    layout = get_layout(config.layout)
-    roots = np.asarray(layout.root_indices)
+def _frame_jacobians(model: Model, q: Array, cam: Camera, scene: Scene | None, layout: str):
+    """One frame's geometry and its Jacobians with respect to a step ``dq`` (nv,) of the
+    configuration (``q (+) dq``), from one forward-kinematics pass (the analytic point
+    Jacobians): the layout's joints ``p3`` (J, 3) with (J, 3, nv), their projections ``uv`` (J, 2)
+    in pixels with (J, 2, nv), the sole points (8, 3) with (8, 3, nv) and their heights above the
+    floor or the ``scene``'s terrain (8,) with (8, nv) (:func:`surface_heights_and_normals`: the
+    surface normal's component of the points' Jacobians). Returns ``(p3, jk, uv, j_uv, sole, js,
+    sole_h, j_h)``."""
     kin = P.forward_kinematics(model, q)
-    ids = model.site_ids(layout.sites)
-    p3 = P.keypoints(model, q, config.layout, kin=kin)
-    jk, _ = P.point_jacobian(model, kin, p3, np.asarray(model.topo.site_body)[np.asarray(ids)])  # (J, 3, nv)
+    ids = model.site_ids(get_layout(layout).sites)
+    p3 = P.keypoints(model, q, layout, kin=kin)
     pts, bodies, _ = S.sole_points(model, kin)
-    js, _ = P.point_jacobian(model, kin, pts, bodies)
+    jac, _ = P.point_jacobian(model, kin, jnp.concatenate([p3, pts]),
+                              np.concatenate([np.asarray(model.topo.site_body)[np.asarray(ids)], bodies]))
+    jk, js = jac[: p3.shape[0]], jac[p3.shape[0]:]
     if is_flat(scene):
         sole_h, j_h = pts[:, 2], js[:, 2, :]
     else:
@@ -756,6 +751,26 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
     dproj = dproj.at[:, 0, 0].set(f[0] / z).at[:, 1, 1].set(f[1] / z)
     dproj = dproj.at[:, :, 2].set(-f * xc[:, :2] / (z * z)[:, None])
     j_uv = jnp.einsum("jab,bc,jcv->jav", dproj, R, jk)
+    return p3, jk, uv, j_uv, pts, js, sole_h, j_h
+
+
+def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, config: TrajOptConfig,
+                     depth: Array | None = None, contacts: Array | None = None, scene: Scene | None = None):
+    """One frame's residuals and their Jacobians with respect to a step ``dq`` (nv,) of the
+    configuration (``q (+) dq``, :func:`jmocap.physics.integrate_positions`), from one
+    forward-kinematics pass (the analytic point Jacobians): the projected joints (J, 2) in
+    pixels with (J, 2, nv), and the weighted prior residuals (pose prior, joint limits, floor)
+    whose squares are their terms of the per-frame objective, with their Jacobian. With
+    ``depth`` (the frame's log-depth target, :func:`depth_track`) the prior residuals end with
+    ``sqrt(w_depth) (log z - depth) / depth_sigma`` of the root's camera depth ``z``. With
+    ``contacts`` (4,), the frame's contact labels, they end with the robust height residuals of
+    the labelled sites' sole points, :func:`robust_height`. Sole heights are above the
+    ``scene``'s terrain (:func:`surface_heights_and_normals`: their Jacobian is the surface
+    normal's component of the points' Jacobians)."""
+    layout = get_layout(config.layout)
+    roots = np.asarray(layout.root_indices)
+    p3, jk, uv, j_uv, pts, _, sole_h, j_h = _frame_jacobians(model, q, cam, scene, config.layout)
+    R, t = cam.extrinsics[:3, :3], cam.extrinsics[:3, 3]
     # priors
     rr = p3 - jnp.mean(p3[roots], 0)
     j_rr = jk - jnp.mean(jk[roots], 0)
@@ -913,6 +928,142 @@ def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, 
     return jnp.where(keep[:, None], fitted, filled)
 
 
+@struct.dataclass
+class NormalEquations:
+    """The Gauss-Newton model of a whole-clip objective at a trajectory, in the steps ``dq``
+    (T, nv) of its configurations: ``f(q (+) dq) ~ f + g . dq + 1/2 dq^T H dq``, ``H`` block-banded
+    (the temporal terms couple frames at most two apart)."""
+
+    grad: Array  # (T, nv) the objective's exact gradient
+    blocks: Array  # (3, T, nv, nv) H[t, t], H[t, t+1], H[t, t+2] (physics.linalg.banded_matvec)
+
+
+def kinematic_normal_equations(model: Model, q: Array, prob: Problem, config: TrajOptConfig) -> NormalEquations:
+    """Gradient and Gauss-Newton matrix of the kinematic stage's objective (:func:`objective`
+    with ``physics=False``: every term of :func:`kinematic_terms`) at configurations ``q`` (T, nq),
+    from one forward-kinematics pass per frame and its analytic Jacobians
+    (:func:`_frame_jacobians`). Each term is a frame mean of squared residuals, so ``g = 2 sum
+    J^T W r`` and ``H = 2 sum J^T W J``; the robust reprojection (Geman-McClure ``rho(s)``, ``s``
+    the squared residual) enters with its IRLS weight ``rho'(s)``, which makes ``g`` exact and
+    ``H`` the usual approximation without ``rho''``. The acceleration term couples frames ``t``
+    and ``t +- 1, 2``, the contact-stillness term ``t`` and ``t + 1``. ``g`` equals the
+    autodiff gradient of :func:`objective` in the variables of ``from_q(q)`` (tested)."""
+    layout = get_layout(config.layout)
+    roots = np.asarray(layout.root_indices)
+    T, nv = q.shape[0], model.nv
+    dt = q.dtype
+    cams = Camera(prob.intrinsics, jnp.zeros(2, dt), prob.extrinsics)
+    p3, jk, uv, j_uv, sole, js, sole_h, j_h = jax.vmap(
+        lambda qt, E: _frame_jacobians(model, qt, Camera(prob.intrinsics, jnp.zeros(2, dt), E), prob.scene,
+                                       config.layout))(q, cams.extrinsics)
+    m = prob.mask.astype(dt)
+    n1 = jnp.maximum(jnp.sum(m), 1.0)
+    m3 = m[2:] * m[1:-1] * m[:-2]
+    n3 = jnp.maximum(jnp.sum(m3), 1.0)
+    m2 = m[1:] * m[:-1]
+    n2 = jnp.maximum(jnp.sum(m2), 1.0)
+    def gram(a, b):  # (T, K, nv), (T, K, nv) -> (T, nv, nv): a_t^T b_t
+        return jnp.einsum("tkv,tkw->tvw", a, b)
+
+    # reprojection: sum_j conf rho(|e|^2), e = (uv - kp) / unit
+    unit = jnp.broadcast_to(prob.unit_px, (T,))[:, None, None]
+    e = (uv - prob.keypoints[..., :2]) / unit
+    s = jnp.sum(e * e, -1)
+    c2 = config.gm_scale**2
+    w = 2.0 * config.w_reproj / n1 * m[:, None] * prob.keypoints[..., 2] * c2 * c2 / (c2 + s) ** 2  # (T, J)
+    je = j_uv / unit[..., None]
+    g = jnp.einsum("tj,tja,tjav->tv", w, e, je)
+    rows = [(jnp.sqrt(w)[..., None, None] * je).reshape(T, -1, nv)]
+
+    # pose prior on the root-relative joints
+    r = p3 - jnp.mean(p3[:, roots], 1, keepdims=True) - prob.prior_rr
+    jr = jk - jnp.mean(jk[:, roots], 1, keepdims=True)
+    wp = 2.0 * config.w_pose / n1 * m / config.pose_sigma_m**2
+    g = g + wp[:, None] * jnp.einsum("tja,tjav->tv", r, jr)
+    rows.append(jnp.sqrt(wp)[:, None, None] * jr.reshape(T, -1, nv))
+
+    # contact heights and the floor: sole-point heights
+    lab = jnp.repeat(prob.contacts.astype(dt), 2, axis=-1)  # (T, 8)
+    a_h = config.w_contact_height / config.contact_height_sigma**2
+    a_f = config.w_floor / config.floor_sigma**2
+    wh = 2.0 / n1 * m[:, None] * (a_h * lab + a_f * (sole_h < config.floor_margin_m).astype(dt))  # (T, 8)
+    rh = 2.0 / n1 * m[:, None] * (a_h * lab * sole_h - a_f * jax.nn.relu(config.floor_margin_m - sole_h))
+    g = g + jnp.einsum("tp,tpv->tv", rh, j_h)
+    rows.append(jnp.sqrt(wh)[..., None] * j_h)
+    rows = jnp.concatenate(rows, 1)
+    H0 = gram(rows, rows)
+
+    # joint limits (the hinge coordinates are dq's own)
+    h = q[:, model.topo.hinge_qadr]
+    lo = jnp.asarray(model.q_lower, dt)[model.topo.hinge_qadr]
+    hi = jnp.asarray(model.q_upper, dt)[model.topo.hinge_qadr]
+    wl = 2.0 * config.w_limits / n1 * m[:, None] / config.limit_sigma_rad**2
+    dof = np.asarray(model.topo.hinge_dofadr)
+    g = g.at[:, dof].add(wl * (jax.nn.relu(h - hi) - jax.nn.relu(lo - h)))
+    H0 = H0.at[:, dof, dof].add(wl * ((h > hi) | (h < lo)).astype(dt))
+
+    # 3D joint accelerations: a_i = (x_{i+2} - 2 x_{i+1} + x_i) fps^2 at the centre i + 1
+    fps2 = prob.fps**2
+    acc = (p3[2:] - 2.0 * p3[1:-1] + p3[:-2]) * fps2
+    wa = 2.0 * config.w_accel / n3 * m3 / config.accel_sigma**2  # (T-2,)
+    ga = (wa * fps2)[:, None, None] * acc
+    for k, coef in enumerate((1.0, -2.0, 1.0)):
+        g = g.at[k:T - 2 + k].add(coef * jnp.einsum("tja,tjav->tv", ga, jk[k:T - 2 + k]))
+    wa = (wa * fps2 * fps2)[:, None, None]
+    jf = jk.reshape(T, -1, nv)
+    G0 = gram(jf, jf)
+    H0 = H0.at[:-2].add(wa * G0[:-2]).at[1:-1].add(4.0 * wa * G0[1:-1]).at[2:].add(wa * G0[2:])
+    G1 = gram(jf[:-1], jf[1:])  # (T-1, nv, nv): J_t^T J_{t+1}
+    H1 = jnp.zeros((T, nv, nv), dt).at[: T - 2].add(-2.0 * wa * G1[:-1]).at[1 : T - 1].add(-2.0 * wa * G1[1:])
+    H2 = jnp.zeros((T, nv, nv), dt).at[: T - 2].add(wa * gram(jf[:-2], jf[2:]))
+
+    # labelled sole points stay still: d_t = sole_{t+1} - sole_t
+    ls = jnp.repeat(prob.contacts[1:] * prob.contacts[:-1], 2, axis=-1).astype(dt)  # (T-1, 8)
+    wv = 2.0 * config.w_contact_vel / n2 * m2[:, None] * ls * fps2 / config.contact_vel_sigma**2  # (T-1, 8)
+    gd = wv[..., None] * (sole[1:] - sole[:-1])
+    g = g.at[1:].add(jnp.einsum("tpa,tpav->tv", gd, js[1:])).at[:-1].add(-jnp.einsum("tpa,tpav->tv", gd, js[:-1]))
+    sv = jnp.sqrt(wv)[..., None, None]
+    a0, a1 = (sv * js[:-1]).reshape(T - 1, -1, nv), (sv * js[1:]).reshape(T - 1, -1, nv)
+    H0 = H0.at[:-1].add(gram(a0, a0)).at[1:].add(gram(a1, a1))
+    H1 = H1.at[:-1].add(-gram(a0, a1))
+    return NormalEquations(g, jnp.stack([H0, H1, H2]))
+
+
+def gauss_newton(model: Model, q: Array, prob: Problem, config: TrajOptConfig, iterations: int) -> tuple[Array, StageReport]:
+    """``iterations`` Levenberg-Marquardt steps on the kinematic stage's objective over the whole
+    clip, on the configuration manifold (``q (+) dq``): each step solves the damped block-banded
+    normal equations (:func:`kinematic_normal_equations`; Marquardt's scaling by the diagonal)
+    exactly (:func:`jmocap.physics.linalg.banded_solve`) and is kept only if it lowers the
+    objective; the damping falls (x 0.3) after a kept step and rises (x 10) after a refused one.
+    One objective value, one forward-kinematics pass with its Jacobians and one banded solve per
+    iteration, where L-BFGS spends 2-3 objective evaluations with their gradients on each line
+    search and needs several times the iterations (docs/performance.md)."""
+
+    def value(qc):
+        x, base = from_q(model, qc)
+        return objective(model, x, prob.replace(base_quat=base), config, physics=False)
+
+    def linearise(qc):
+        return value(qc), kinematic_normal_equations(model, qc, prob, config)
+
+    def step(_, s):
+        qc, f, ne, lam = s
+        diag = jnp.diagonal(ne.blocks[0], axis1=-2, axis2=-1)  # (T, nv)
+        damp = lam * (diag + 1e-6 * jnp.mean(diag) + 1e-12)
+        A = ne.blocks.at[0].add(jax.vmap(jnp.diag)(damp))
+        dq = -banded_solve(A, ne.grad)
+        q_new = jax.vmap(lambda a, b: P.integrate_positions(model, a, b, 1.0))(qc, dq)
+        f_new, ne_new = linearise(q_new)
+        ok = jnp.isfinite(f_new) & (f_new < f)
+        pick = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
+        return (pick(q_new, qc), pick(f_new, f), jax.tree.map(pick, ne_new, ne),
+                jnp.clip(jnp.where(ok, lam * 0.3, lam * 10.0), 1e-7, 1e7))
+
+    f0, ne0 = linearise(q)
+    q, f, ne, _ = jax.lax.fori_loop(0, iterations, step, (q, f0, ne0, jnp.asarray(1e-3, q.dtype)))
+    return q, StageReport(f0, f, jnp.sqrt(jnp.sum(ne.grad**2)), jnp.asarray(iterations))
+
+
 # ---------------------------------------------------------------------------------------
 # the method
 # ---------------------------------------------------------------------------------------
@@ -1003,10 +1154,17 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     contacts = prob.contacts * (site_h < config.outlier_height_m)
     prob = prob.replace(contacts=contacts)
     # stage 1: the full kinematic fit
-    f1 = lambda x: objective(model, x, prob, config, physics=False)  # noqa: E731
-    x2, rep2 = lbfgs(f1, x1, config.kinematic_iterations, config.memory, diagonal_scale(model, x1, prob, config),
-                     config.linesearch)
-    q_kin = to_q(model, x2, prob.base_quat)
+    if config.kinematic_solver == "gauss_newton":
+        q_kin, rep2 = gauss_newton(model, to_q(model, x1, prob.base_quat), prob, config, config.kinematic_iterations)
+        x2, base = from_q(model, q_kin)
+        prob = prob.replace(base_quat=base)
+    elif config.kinematic_solver == "lbfgs":
+        f1 = lambda x: objective(model, x, prob, config, physics=False)  # noqa: E731
+        x2, rep2 = lbfgs(f1, x1, config.kinematic_iterations, config.memory,
+                         diagonal_scale(model, x1, prob, config), config.linesearch)
+        q_kin = to_q(model, x2, prob.base_quat)
+    else:
+        raise ValueError(f"unknown kinematic_solver {config.kinematic_solver!r} (lbfgs, gauss_newton)")
     # stage 2: physics, anchored to the kinematic fit
     prob = prob.replace(anchor_kp=jax.vmap(lambda x: P.keypoints(model, x, config.layout))(q_kin))
     f2 = lambda x: objective(model, x, prob, config, physics=True)  # noqa: E731
