@@ -107,14 +107,16 @@ def test_spd_inverse_matches_lapack(enable_x64, n):
     np.testing.assert_allclose(la.spd_inverse(M), np.linalg.inv(M), atol=1e-10 * np.abs(np.linalg.inv(M)).max())
 
 
+@pytest.mark.parametrize("K", [1, 2, 3, 4])
 @pytest.mark.parametrize("T,n", [(1, 4), (2, 5), (3, 3), (40, 7)])
-def test_block_banded_solve_and_product_against_dense(enable_x64, T, n):
-    """A symmetric positive definite block-pentadiagonal matrix (three stored block diagonals,
-    rows past the end ignored) assembled densely: the product and the block LDL^T solve equal
-    NumPy's, including the short systems whose off-diagonal blocks hang past the end."""
-    rng = np.random.default_rng(T * 100 + n)
-    blocks = rng.normal(size=(3, T, n, n))
-    blocks[0] = spd(rng, (T,), n) + 4 * n * np.eye(n)  # diagonally dominant: positive definite
+def test_block_banded_solve_and_product_against_dense(enable_x64, T, n, K):
+    """A symmetric positive definite block-banded matrix (K stored block diagonals, rows past the
+    end ignored) assembled densely: the product and the block LDL^T solve equal NumPy's,
+    including the short systems whose off-diagonal blocks hang past the end; the factor's
+    inverse root S (``x = x0 + S y``) satisfies ``S S^T = H^-1``."""
+    rng = np.random.default_rng(T * 100 + n * 10 + K)
+    blocks = rng.normal(size=(K, T, n, n))
+    blocks[0] = spd(rng, (T,), n) + 4 * K * n * np.eye(n)  # diagonally dominant: positive definite
     H = _dense_banded(blocks)
     assert np.all(np.linalg.eigvalsh(H) > 0)
     x = rng.normal(size=(T, n))
@@ -124,6 +126,9 @@ def test_block_banded_solve_and_product_against_dense(enable_x64, T, n):
     want = np.linalg.solve(H, b.ravel()).reshape(T, n)
     got = jax.jit(la.banded_solve)(jnp.asarray(blocks), jnp.asarray(b))
     np.testing.assert_allclose(got, want, atol=1e-10 * np.abs(want).max())
+    S = la.banded_inverse_root(la.banded_factor(jnp.asarray(blocks)))
+    cols = np.asarray(jax.jit(jax.vmap(S))(jnp.asarray(np.eye(T * n).reshape(T * n, T, n)))).reshape(T * n, -1).T
+    np.testing.assert_allclose(cols @ cols.T, np.linalg.inv(H), atol=1e-10 * np.abs(np.linalg.inv(H)).max())
 
 
 def test_block_banded_solve_of_an_ill_conditioned_trajectory_system(enable_x64):

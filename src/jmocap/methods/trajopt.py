@@ -133,6 +133,7 @@ class TrajOptConfig(KinematicConfig):
     depth_accel_sigma: float = 3.0  # the track's log-depth acceleration (1/s^2)
     min_depth_m: float = 0.3  # a TPNet root nearer the camera than this is no depth evidence
     w_accel: float = 20.0  # 3D joint accelerations
+    w_accel_kinematic: float = -1.0  # the kinematic stage's own w_accel (< 0: w_accel)
     accel_sigma: float = 10.0  # m/s^2
     # --- contacts ---
     contact_threshold: float = 0.5
@@ -1154,14 +1155,17 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     contacts = prob.contacts * (site_h < config.outlier_height_m)
     prob = prob.replace(contacts=contacts)
     # stage 1: the full kinematic fit
+    kin_config = config.replace(w_accel=jnp.where(config.w_accel_kinematic >= 0, config.w_accel_kinematic,
+                                                  config.w_accel))
     if config.kinematic_solver == "gauss_newton":
-        q_kin, rep2 = gauss_newton(model, to_q(model, x1, prob.base_quat), prob, config, config.kinematic_iterations)
+        q_kin, rep2 = gauss_newton(model, to_q(model, x1, prob.base_quat), prob, kin_config,
+                                  config.kinematic_iterations)
         x2, base = from_q(model, q_kin)
         prob = prob.replace(base_quat=base)
     elif config.kinematic_solver == "lbfgs":
-        f1 = lambda x: objective(model, x, prob, config, physics=False)  # noqa: E731
+        f1 = lambda x: objective(model, x, prob, kin_config, physics=False)  # noqa: E731
         x2, rep2 = lbfgs(f1, x1, config.kinematic_iterations, config.memory,
-                         diagonal_scale(model, x1, prob, config), config.linesearch)
+                         diagonal_scale(model, x1, prob, kin_config), config.linesearch)
         q_kin = to_q(model, x2, prob.base_quat)
     else:
         raise ValueError(f"unknown kinematic_solver {config.kinematic_solver!r} (lbfgs, gauss_newton)")

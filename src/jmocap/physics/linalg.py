@@ -22,6 +22,7 @@ Shapes follow NumPy: leading batch axes are allowed everywhere.
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -212,7 +213,7 @@ def banded_matvec(blocks: Array, x: Array) -> Array:
     ``x`` (T, n)."""
     K, T = blocks.shape[0], blocks.shape[1]
     y = jnp.einsum("tij,tj->ti", blocks[0], x)
-    for d in range(1, K):
+    for d in range(1, min(K, T)):
         up = jnp.einsum("tij,tj->ti", blocks[d, : T - d], x[d:])  # H[t, t+d] x[t+d]
         down = jnp.einsum("tji,tj->ti", blocks[d, : T - d], x[: T - d])  # H[t+d, t] x[t]
         y = y.at[: T - d].add(up).at[d:].add(down)
@@ -241,52 +242,107 @@ def spd_inverse(M: Array) -> Array:
     return jnp.vectorize(one, signature="(n,n)->(n,n)")(M)
 
 
-def banded_solve(blocks: Array, b: Array) -> Array:
-    """``x`` with ``H x = b`` for a symmetric positive definite block-banded ``H`` of block
-    bandwidth 2 (``blocks`` (3, T, n, n) as in :func:`banded_matvec`), ``b`` (T, n), by the block
-    factorisation ``H = L D L^T`` (``L`` unit lower block-banded, ``D`` block diagonal) and two
-    substitutions, each a ``lax.scan`` over the T block rows: O(T n^3) work instead of the dense
-    O(T^3 n^3), exact (no iteration), no LAPACK call (module docstring), and per block row a
-    single n-step loop (the inverse of ``D[t]``, :func:`spd_inverse`), since the loops' count,
-    not their arithmetic, is what such small blocks cost on a CPU. Not differentiable (see
-    :func:`spd_inverse`)."""
-    if blocks.shape[0] != 3:
-        raise ValueError(f"banded_solve takes 3 block diagonals, got {blocks.shape[0]}")
-    T, n = b.shape
-    z = jnp.zeros((n, n), b.dtype)
-    eye = jnp.eye(n, dtype=b.dtype)
-    h1 = jnp.concatenate([z[None], blocks[1]])[:T]  # H[t-1, t]
-    h2 = jnp.concatenate([z[None], z[None], blocks[2]])[:T]  # H[t-2, t]
+class BandedFactor(NamedTuple):
+    """``H = L D L^T`` of a symmetric positive definite block-banded ``H`` (:func:`banded_factor`):
+    ``L`` unit lower block-banded, ``D`` block diagonal."""
 
-    def factor(carry, xs):
-        d1, d2, i1, i2, l12 = carry  # D[t-1], D[t-2], their inverses, L[t-1, t-2]
-        h0, a1, a2 = xs
-        m2 = a2.T @ i2  # L[t, t-2]
-        m1 = (a1.T - m2 @ d2 @ l12.T) @ i1  # L[t, t-1]
-        d = h0 - m1 @ d1 @ m1.T - m2 @ d2 @ m2.T
+    d: Array  # (T, n, n) D[t]
+    d_inv: Array  # (T, n, n) D[t]^-1
+    low: Array  # (K - 1, T, n, n) low[k - 1, t] = L[t, t - k] (zero for t < k)
+
+
+def banded_factor(blocks: Array) -> BandedFactor:
+    """The block factorisation ``H = L D L^T`` of a symmetric positive definite block-banded ``H``
+    given by its ``K`` upper block diagonals (``blocks`` (K, T, n, n) as in
+    :func:`banded_matvec`): one ``lax.scan`` over the T block rows, O(T K^2 n^3) work instead of
+    the dense O(T^3 n^3), exact, no LAPACK call (module docstring), and per block row a single
+    n-step loop (the inverse of ``D[t]``, :func:`spd_inverse`): the loops' count, not their
+    arithmetic, is what such small blocks cost on a CPU. Not differentiable (see
+    :func:`spd_inverse`)."""
+    K, T, n = blocks.shape[0], blocks.shape[1], blocks.shape[-1]
+    z = jnp.zeros((n, n), blocks.dtype)
+    eye = jnp.eye(n, dtype=blocks.dtype)
+    # above[k - 1][t] = H[t - k, t]
+    above = jnp.stack([jnp.concatenate([jnp.broadcast_to(z, (k, n, n)), blocks[k]])[:T] for k in range(1, K)]) \
+        if K > 1 else jnp.zeros((0, T, n, n), blocks.dtype)
+
+    def row(carry, xs):
+        ds, invs, rows = carry  # ds[i] = D[t-1-i]; rows[i, j] = L[t-1-i, t-2-i-j]
+        h0, up = xs  # H[t, t]; up[k - 1] = H[t - k, t]
+        new = [z] * (K - 1)  # new[k - 1] = L[t, t - k]
+        for k in range(K - 1, 0, -1):
+            acc = up[k - 1].T
+            for j in range(k + 1, K):
+                acc = acc - new[j - 1] @ ds[j - 1] @ rows[k - 1, j - k - 1].T
+            new[k - 1] = acc @ invs[k - 1]
+        d = h0
+        for k in range(1, K):
+            d = d - new[k - 1] @ ds[k - 1] @ new[k - 1].T
         d = 0.5 * (d + d.T)
         inv = spd_inverse(d)
-        return (d, d1, inv, i1, m1), (inv, m1, m2)
+        new = jnp.stack(new) if K > 1 else jnp.zeros((0, n, n), blocks.dtype)
+        if K > 1:
+            ds = jnp.concatenate([d[None], ds[:-1]])
+            invs = jnp.concatenate([inv[None], invs[:-1]])
+            rows = jnp.concatenate([new[None], rows[:-1]])
+        return (ds, invs, rows), (d, inv, new)
 
-    _, (Dinv, L1, L2) = lax.scan(factor, (eye, eye, eye, eye, z), (blocks[0], h1, h2))
-    zv = jnp.zeros(n, b.dtype)
+    m = max(K - 1, 1)
+    init = (jnp.broadcast_to(eye, (m, n, n)), jnp.broadcast_to(eye, (m, n, n)),
+            jnp.zeros((m, max(K - 1, 0), n, n), blocks.dtype))
+    _, (d, inv, low) = lax.scan(row, init, (blocks[0], jnp.moveaxis(above, 0, 1)))
+    return BandedFactor(d, inv, jnp.moveaxis(low, 1, 0))
 
-    def forward(carry, xs):
-        y1, y2 = carry
-        m1, m2, bt = xs
-        y = bt - m1 @ y1 - m2 @ y2
-        return (y, y1), y
 
-    _, y = lax.scan(forward, (zv, zv), (L1, L2, b))
-    w = jnp.einsum("tij,tj->ti", Dinv, y)
-    below1 = jnp.concatenate([L1[1:], z[None]])  # L[t+1, t]
-    below2 = jnp.concatenate([L2[2:], z[None], z[None]])[:T]  # L[t+2, t]
+def _below(f: BandedFactor) -> Array:
+    """(K - 1, T, n, n): ``[k - 1, t] = L[t + k, t]`` (zero past the end)."""
+    T = f.d.shape[0]
+    return jnp.stack([jnp.concatenate([f.low[k - 1, k:], jnp.zeros_like(f.low[k - 1, :k])])[:T]
+                      for k in range(1, f.low.shape[0] + 1)]) if f.low.shape[0] else f.low
 
-    def backward(carry, xs):
-        x1, x2 = carry
-        m1, m2, wt = xs
-        x = wt - m1.T @ x1 - m2.T @ x2
-        return (x, x1), x
 
-    _, x = lax.scan(backward, (zv, zv), (below1, below2, w), reverse=True)
+def _back_substitute(f: BandedFactor, w: Array) -> Array:
+    """``x`` with ``L^T x = w``."""
+    K1, n = f.low.shape[0], w.shape[-1]
+    if K1 == 0:
+        return w
+
+    def step(prev, xs):  # prev[k - 1] = x[t + k]
+        below, wt = xs
+        x = wt - jnp.einsum("kij,ki->j", below, prev)
+        return jnp.concatenate([x[None], prev[:-1]]), x
+
+    _, x = lax.scan(step, jnp.zeros((K1, n), w.dtype), (jnp.moveaxis(_below(f), 0, 1), w), reverse=True)
     return x
+
+
+def banded_factor_solve(f: BandedFactor, b: Array) -> Array:
+    """``x`` with ``H x = b`` (T, n) given ``H``'s :func:`banded_factor`."""
+    K1, n = f.low.shape[0], b.shape[-1]
+    if K1:
+        def step(prev, xs):  # prev[k - 1] = y[t - k]
+            low, bt = xs
+            y = bt - jnp.einsum("kij,kj->i", low, prev)
+            return jnp.concatenate([y[None], prev[:-1]]), y
+
+        _, y = lax.scan(step, jnp.zeros((K1, n), b.dtype), (jnp.moveaxis(f.low, 0, 1), b))
+    else:
+        y = b
+    return _back_substitute(f, jnp.einsum("tij,tj->ti", f.d_inv, y))
+
+
+def banded_solve(blocks: Array, b: Array) -> Array:
+    """``x`` with ``H x = b`` for a symmetric positive definite block-banded ``H`` (``blocks`` (K,
+    T, n, n) as in :func:`banded_matvec`), ``b`` (T, n): :func:`banded_factor` and two
+    substitutions."""
+    return banded_factor_solve(banded_factor(blocks), b)
+
+
+def banded_inverse_root(f: BandedFactor):
+    """A linear map ``S`` (a function of (T, n) arrays) with ``S S^T = H^-1`` for ``H``'s
+    :func:`banded_factor`: ``S y = L^-T C y`` with ``C C^T = D^-1`` (blockwise Cholesky). In the
+    variables ``y`` of ``x = x0 + S y`` a quadratic with Hessian ``H`` has Hessian ``I``: the
+    preconditioner of a first-order method whose curvature ``H`` approximates. Linear, hence
+    differentiable in ``y`` (the factor is a constant)."""
+    C = cholesky(f.d_inv)
+    return lambda y: _back_substitute(f, jnp.einsum("tij,tj->ti", C, y))
