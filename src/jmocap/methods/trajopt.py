@@ -77,7 +77,14 @@ from jmocap.methods.kinematic import LEARNED_STAGE_FIELDS, KinematicConfig
 from jmocap.methods.kinematic import init_params as init_tpnet_params
 from jmocap.model import Model
 from jmocap.motion import Motion
-from jmocap.physics.linalg import banded_solve, cho_solve, cholesky
+from jmocap.physics.linalg import (
+    banded_factor,
+    banded_inverse_root,
+    banded_solve,
+    cho_solve,
+    cholesky,
+    spd_inverse,
+)
 from jmocap.physics.qp import friction_pyramid_edges
 from jmocap.physics.rotations import quat_error, quat_exp, quat_mul, quat_normalize
 from jmocap.scene import Scene, sdf
@@ -98,6 +105,7 @@ class TrajOptConfig(KinematicConfig):
     min_keypoints: int = static(8)  # confident keypoints a frame needs to be fitted on its own
     kinematic_iterations: int = static(60)  # iterations of the whole-clip kinematic fit
     kinematic_solver: str = static("lbfgs")  # its optimiser: "lbfgs" or "gauss_newton" (Levenberg-Marquardt)
+    precondition: str = static("diagonal")  # L-BFGS's variables: "diagonal" or "banded" (Gauss-Newton curvature)
     physics_iterations: int = static(80)  # L-BFGS iterations of the physics stage
     memory: int = static(10)  # L-BFGS history
     # the L-BFGS line search: "zoom" (optax's default, strong Wolfe conditions) or "backtracking"
@@ -654,9 +662,14 @@ class StageReport:
 def lbfgs(fun, x0, iterations: int, memory: int, scale=None, linesearch: str = "zoom"):
     """``iterations`` L-BFGS steps (optax; ``linesearch`` "zoom", optax's default, or
     "backtracking"; static) on ``fun`` from ``x0``, in the variables ``y`` of ``x = x0 + scale
-    * y`` (a diagonal preconditioner, default 1); the best iterate seen is returned (a failed
-    line search cannot make the result worse)."""
-    scale = jax.tree.map(jnp.ones_like, x0) if scale is None else scale
+    * y`` (a diagonal preconditioner, default 1), or of ``x = x0 + scale(y)`` when ``scale`` is a
+    linear function (e.g. :func:`banded_preconditioner`); the best iterate seen is returned (a
+    failed line search cannot make the result worse)."""
+    if callable(scale):
+        step_of = scale
+    else:
+        scale = jax.tree.map(jnp.ones_like, x0) if scale is None else scale
+        step_of = lambda y: jax.tree.map(lambda s, b: s * b, scale, y)  # noqa: E731
     if linesearch == "zoom":
         opt = optax.lbfgs(memory_size=memory)
     elif linesearch == "backtracking":
@@ -666,7 +679,7 @@ def lbfgs(fun, x0, iterations: int, memory: int, scale=None, linesearch: str = "
         raise ValueError(f"unknown linesearch {linesearch!r} (zoom, backtracking)")
 
     def to_x(y):
-        return jax.tree.map(lambda a, s, b: a + s * b, x0, scale, y)
+        return jax.tree.map(lambda a, b: a + b, x0, step_of(y))
 
     g_fun = lambda y: fun(to_x(y))  # noqa: E731
     value_and_grad = optax.value_and_grad_from_state(g_fun)
@@ -1065,6 +1078,96 @@ def gauss_newton(model: Model, q: Array, prob: Problem, config: TrajOptConfig, i
     return q, StageReport(f0, f, jnp.sqrt(jnp.sum(ne.grad**2)), jnp.asarray(iterations))
 
 
+def _stencil_blocks(J: Array, w: Array, T: int, K: int, start: int) -> Array:
+    """Upper block diagonals (K, T, nv, nv) of ``sum_i w_i J_i^T J_i`` for residual groups ``i``
+    (N of them) that each depend on F consecutive frames, group ``i`` on frames ``start + i``
+    to ``start + i + F - 1``: ``J`` (N, F, R, nv) their Jacobians with respect to those frames'
+    steps, ``w`` (N,) their weights."""
+    N, F, _, nv = J.shape
+    blocks = jnp.zeros((K, T, nv, nv), J.dtype)
+    Jw = J * w[:, None, None, None]
+    for a in range(F):
+        for b in range(a, F):
+            if b - a < K:
+                g = jnp.einsum("nrv,nrw->nvw", Jw[:, a], J[:, b])
+                blocks = blocks.at[b - a, start + a:start + a + N].add(g)
+    return blocks
+
+
+def physics_curvature(model: Model, q: Array, prob: Problem, config: TrajOptConfig) -> Array:
+    """An approximate Gauss-Newton matrix (4, T, nv, nv) of the physics stage's objective at
+    ``q``, for preconditioning (:func:`banded_preconditioner`): the kinematic terms' exact one
+    (:func:`kinematic_normal_equations`), the pull to the anchor, and the root-wrench terms with
+    the wrench the motion needs linearised as ``b_t ~ M(q_t)[:6] qdd_t / (m g)`` with ``qdd_t =
+    (dq_{t+1} - 2 dq_t + dq_{t-1}) fps^2`` (at 30 fps the mass matrix's part of the wrench's
+    derivative exceeds the configuration's and the velocities' by one to two orders of
+    magnitude). The dynamics residual ``A c - b`` enters projected off the span of the frame's
+    active contact forces (Kaufman's variable-projection approximation: what the forces absorb
+    costs nothing), the centre-of-mass prior with its robust weight; the wrench-rate term
+    couples frames three apart, hence four block diagonals. Interior frames only."""
+    T, nv = q.shape[0], model.nv
+    dt = q.dtype
+    kin = kinematic_normal_equations(model, q, prob, config).blocks
+    blocks = jnp.concatenate([kin, jnp.zeros((1, T, nv, nv), dt)])
+    m = prob.mask.astype(dt)
+    n1 = jnp.maximum(jnp.sum(m), 1.0)
+    m2 = m[1:] * m[:-1]
+    n2 = jnp.maximum(jnp.sum(m2), 1.0)
+    geo = geometry(model, q, config.layout, dynamics=dynamics_inputs(model, q, prob, config))
+    fd = geo.dynamics
+    # the pull to the anchor: the joints' Jacobians
+    jk = jax.vmap(lambda qt: _frame_jacobians(model, qt, Camera(prob.intrinsics, jnp.zeros(2, dt), prob.extrinsics[0]),
+                                              prob.scene, config.layout)[1])(q)
+    ws = 2.0 * config.w_stay / n1 * m / config.stay_sigma_m**2
+    jf = jk.reshape(T, -1, nv)
+    blocks = blocks.at[0].add(ws[:, None, None] * jnp.einsum("tkv,tkw->tvw", jf, jf))
+    # the wrench the motion needs, per body weight, and its second-difference stencil
+    weight = S.body_weight(model, dt)
+    M6 = jax.vmap(lambda qt: P.mass_matrix(model, qt)[:6])(q) * (prob.fps**2 / weight)  # (T, 6, nv)
+    stencil = jnp.asarray([1.0, -2.0, 1.0], dt)
+    Jb = stencil[None, :, None, None] * M6[1:-1, None]  # (T-2, 3, 6, nv): b_t over frames t-1, t, t+1
+    # dynamics residual, projected off the active forces' span
+    edges = friction_pyramid_edges(jnp.asarray([0.0, 0.0, 1.0], dt), config.mu)
+    A = jnp.einsum("tvpk,ek->tvpe", fd.Jt[:, :6], edges).reshape(T, 6, -1)
+    active = (fd.coeff.reshape(T, -1) > 1e-9).astype(dt)
+    G = jnp.einsum("tip,tp,tjp->tij", A, active, A)
+    eps = 1e-6 * jnp.trace(G, axis1=-2, axis2=-1)[:, None, None] + 1e-9
+    proj = jnp.eye(6, dtype=dt) - jnp.einsum("tij,tjk->tik", G, spd_inverse(G + eps * jnp.eye(6, dtype=dt)))
+    Jr = jnp.einsum("tij,tfjv->tfiv", proj[1:-1], Jb)
+    wd = 2.0 * config.w_dynamics / n1 * m[1:-1] / config.dynamics_sigma**2
+    blocks = blocks + _stencil_blocks(Jr, wd, T, 4, 0)
+    # the centre-of-mass prior (robust: its IRLS weight)
+    f = fd.need[:, :3].at[:, 2].add(-1.0)
+    s2 = jnp.sum(f**2, -1) / config.com_accel_sigma**2
+    c2 = config.com_accel_robust**2
+    rho1 = jnp.where(config.com_accel_robust > 0, c2 * c2 / (c2 + s2) ** 2, 1.0)
+    wc = 2.0 * config.w_com_accel / n1 * (m * rho1)[1:-1] / config.com_accel_sigma**2
+    blocks = blocks + _stencil_blocks(Jb[:, :, :3], wc, T, 4, 0)
+    # the wrench rate: b_t - b_{t-1} over frames t-2 .. t+1 (t = 2 .. T-2)
+    z = jnp.zeros_like(Jb[:-1, :1])
+    Jd = jnp.concatenate([z, Jb[1:]], 1) - jnp.concatenate([Jb[:-1], z], 1)  # (T-3, 4, 6, nv)
+    wr = 2.0 * config.w_wrench_rate / n2 * m2[1:-1][: T - 3] / config.wrench_rate_sigma**2
+    blocks = blocks + _stencil_blocks(Jd, wr, T, 4, 0)
+    return blocks
+
+
+def banded_preconditioner(blocks: Array, damping: float = 1e-3):
+    """``y -> dx`` (:class:`Trajectory` to :class:`Trajectory`, linear) with ``S S^T = (H +
+    damping diag(H))^-1`` for the block-banded curvature ``H`` (``blocks``, e.g.
+    :func:`physics_curvature`): the variables in which L-BFGS (:func:`lbfgs`) sees that
+    curvature as the identity. The trajectory's variables at zero rotation offsets are the
+    steps ``dq`` (root position, body-frame rotation, hinges) the curvature is written in."""
+    diag = jnp.diagonal(blocks[0], axis1=-2, axis2=-1)
+    reg = damping * diag + 1e-6 * jnp.mean(diag) + 1e-12
+    root = banded_inverse_root(banded_factor(jax.lax.stop_gradient(blocks.at[0].add(jax.vmap(jnp.diag)(reg)))))
+
+    def apply(y: Trajectory) -> Trajectory:
+        dx = root(jnp.concatenate([y.root_pos, y.root_rot, y.hinges], -1))
+        return Trajectory(dx[:, :3], dx[:, 3:6], dx[:, 6:])
+
+    return apply
+
+
 # ---------------------------------------------------------------------------------------
 # the method
 # ---------------------------------------------------------------------------------------
@@ -1129,6 +1232,21 @@ class Fit:
     q_kinematic: Array  # (T, nq) the kinematic fit (before the physics stage)
 
 
+def _preconditioner(model: Model, x: Trajectory, prob: Problem, config: TrajOptConfig, *, physics: bool):
+    """The L-BFGS variables of a whole-clip stage (``config.precondition``): a diagonal scale
+    (:func:`diagonal_scale`) or the stage's block-banded Gauss-Newton curvature at ``x``
+    (:func:`banded_preconditioner` of :func:`kinematic_normal_equations` or
+    :func:`physics_curvature`; ``x`` has zero rotation offsets)."""
+    if config.precondition == "diagonal":
+        return diagonal_scale(model, x, prob, config)
+    if config.precondition == "banded":
+        q = to_q(model, x, prob.base_quat)
+        blocks = (physics_curvature(model, q, prob, config) if physics
+                  else kinematic_normal_equations(model, q, prob, config).blocks)
+        return banded_preconditioner(blocks)
+    raise ValueError(f"unknown precondition {config.precondition!r} (diagonal, banded)")
+
+
 def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fit:
     """The stages on one window (see the module docstring)."""
     x0, base = from_q(model, q_init)
@@ -1165,15 +1283,18 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     elif config.kinematic_solver == "lbfgs":
         f1 = lambda x: objective(model, x, prob, kin_config, physics=False)  # noqa: E731
         x2, rep2 = lbfgs(f1, x1, config.kinematic_iterations, config.memory,
-                         diagonal_scale(model, x1, prob, kin_config), config.linesearch)
+                         _preconditioner(model, x1, prob, kin_config, physics=False), config.linesearch)
         q_kin = to_q(model, x2, prob.base_quat)
     else:
         raise ValueError(f"unknown kinematic_solver {config.kinematic_solver!r} (lbfgs, gauss_newton)")
     # stage 2: physics, anchored to the kinematic fit
     prob = prob.replace(anchor_kp=jax.vmap(lambda x: P.keypoints(model, x, config.layout))(q_kin))
+    if config.precondition == "banded":  # the curvature is written at zero rotation offsets
+        x2, base = from_q(model, q_kin)
+        prob = prob.replace(base_quat=base)
     f2 = lambda x: objective(model, x, prob, config, physics=True)  # noqa: E731
-    x3, rep3 = lbfgs(f2, x2, config.physics_iterations, config.memory, diagonal_scale(model, x2, prob, config),
-                     config.linesearch)
+    x3, rep3 = lbfgs(f2, x2, config.physics_iterations, config.memory,
+                     _preconditioner(model, x2, prob, config, physics=True), config.linesearch)
     q = to_q(model, x3, prob.base_quat)
 
     fd = geometry(model, q, config.layout, dynamics=dynamics_inputs(model, q, prob, config)).dynamics
