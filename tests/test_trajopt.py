@@ -598,7 +598,7 @@ def test_banded_preconditioning_converges_faster():
     kinematic stage's objective and the physics stage's final one)."""
     clip, model = _walk()
     start = _quiet_window(clip, 32)
-    base = get_method("trajopt").make_config(kinematic_iterations=20, physics_iterations=20)
+    base = get_method("trajopt").make_config(kinematic_iterations=20, physics_iterations=20, precondition="diagonal")
     prob, q, _ = _problem(model, clip, start, 32, base)
     rng = np.random.default_rng(9)
     prob = prob.replace(keypoints=prob.keypoints.at[..., :2].add(jnp.asarray(rng.normal(0, 2.0, (32, 25, 2)),

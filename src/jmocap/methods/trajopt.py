@@ -50,7 +50,11 @@ TPNet's pose is far from the evidence, and each frame's small system is solved e
 frame's root depth held towards the clip's depth track (:func:`depth_track`: frames with few
 keypoints left cannot fix their own depth) and its labelled feet on the floor (with the camera
 known, a foot on the floor fixes the frame's depth); the
-whole-clip stages run L-BFGS (optax, zoom line search). Every stage has a fixed number of
+whole-clip stages run L-BFGS (optax, zoom line search) in the variables of their block-banded
+Gauss-Newton curvature (:func:`banded_preconditioner`: per frame a 47 x 47 block, coupled to the
+frames two or three away by the temporal terms, factorised by one scan over the frames;
+:func:`kinematic_normal_equations`, :func:`physics_curvature`), or the kinematic stage by
+Levenberg-Marquardt on the same normal equations (:func:`gauss_newton`, an option). Every stage has a fixed number of
 iterations, so the program is ``jax.jit``-ed once per length bucket; ``jax.vmap`` over clips runs their
 optimisations one after another in that program (:func:`fit_clip`); each clip's
 convergence report (objective before and after, the terms, gradient norm, residual,
@@ -103,10 +107,10 @@ class TrajOptConfig(KinematicConfig):
     frame_iterations: int = static(30)  # Levenberg-Marquardt iterations of the per-frame fit
     frame_tile: int = static(64)  # frames per tile of the per-frame fit (per_frame_fit's tile; 0: all at once)
     min_keypoints: int = static(8)  # confident keypoints a frame needs to be fitted on its own
-    kinematic_iterations: int = static(60)  # iterations of the whole-clip kinematic fit
+    kinematic_iterations: int = static(30)  # iterations of the whole-clip kinematic fit
     kinematic_solver: str = static("lbfgs")  # its optimiser: "lbfgs" or "gauss_newton" (Levenberg-Marquardt)
-    precondition: str = static("diagonal")  # L-BFGS's variables: "diagonal" or "banded" (Gauss-Newton curvature)
-    physics_iterations: int = static(80)  # L-BFGS iterations of the physics stage
+    precondition: str = static("banded")  # L-BFGS's variables: "banded" (Gauss-Newton curvature) or "diagonal"
+    physics_iterations: int = static(30)  # L-BFGS iterations of the physics stage
     memory: int = static(10)  # L-BFGS history
     # the L-BFGS line search: "zoom" (optax's default, strong Wolfe conditions) or "backtracking"
     # (Armijo, the accepted trial's gradient kept): the same accuracy on the held-out archive,
@@ -141,7 +145,7 @@ class TrajOptConfig(KinematicConfig):
     depth_accel_sigma: float = 3.0  # the track's log-depth acceleration (1/s^2)
     min_depth_m: float = 0.3  # a TPNet root nearer the camera than this is no depth evidence
     w_accel: float = 20.0  # 3D joint accelerations
-    w_accel_kinematic: float = -1.0  # the kinematic stage's own w_accel (< 0: w_accel)
+    w_accel_kinematic: float = 5.0  # the kinematic stage's own w_accel (< 0: w_accel)
     accel_sigma: float = 10.0  # m/s^2
     # --- contacts ---
     contact_threshold: float = 0.5
@@ -168,7 +172,7 @@ class TrajOptConfig(KinematicConfig):
     w_com_accel: float = 100.0  # prior on the external force: the centre of mass accelerates little
     com_accel_sigma: float = 0.15  # of |c''| / g, i.e. of the net external force minus the weight, body weights
     com_accel_robust: float = 3.0  # Geman-McClure scale of that residual, in com_accel_sigma (0: quadratic)
-    w_stay: float = 0.2  # pull of the physics stage towards the kinematic fit
+    w_stay: float = 1.0  # pull of the physics stage towards the kinematic fit
     stay_sigma_m: float = 0.03
     force_regularisation: float = 1e-3  # of the edge coefficients (body weights): unique forces
     touch_m: float = 0.01  # a sole point this close to the floor may carry force, labelled or not
@@ -966,16 +970,16 @@ def kinematic_normal_equations(model: Model, q: Array, prob: Problem, config: Tr
     roots = np.asarray(layout.root_indices)
     T, nv = q.shape[0], model.nv
     dt = q.dtype
-    cams = Camera(prob.intrinsics, jnp.zeros(2, dt), prob.extrinsics)
     p3, jk, uv, j_uv, sole, js, sole_h, j_h = jax.vmap(
         lambda qt, E: _frame_jacobians(model, qt, Camera(prob.intrinsics, jnp.zeros(2, dt), E), prob.scene,
-                                       config.layout))(q, cams.extrinsics)
+                                       config.layout))(q, prob.extrinsics)
     m = prob.mask.astype(dt)
     n1 = jnp.maximum(jnp.sum(m), 1.0)
     m3 = m[2:] * m[1:-1] * m[:-2]
     n3 = jnp.maximum(jnp.sum(m3), 1.0)
     m2 = m[1:] * m[:-1]
     n2 = jnp.maximum(jnp.sum(m2), 1.0)
+
     def gram(a, b):  # (T, K, nv), (T, K, nv) -> (T, nv, nv): a_t^T b_t
         return jnp.einsum("tkv,tkw->tvw", a, b)
 
@@ -1459,6 +1463,12 @@ register_variant(Variant("trajopt_tpnet_contacts", "trajopt", {"contact_source":
 register_variant(Variant("trajopt_voted_contacts", "trajopt", {"contact_source": "mlp"},
                          "trajopt with Rempe et al.'s voted contact MLP alone, without jmocap's temporal "
                          "refiner (ablation)"))
+register_variant(Variant("trajopt_diagonal", "trajopt",
+                         {"precondition": "diagonal", "kinematic_iterations": 60, "physics_iterations": 80,
+                          "w_accel_kinematic": -1.0, "w_stay": 0.2},
+                         "trajopt as before stop 55: L-BFGS with the diagonal preconditioner, 60 + 80 iterations, "
+                         "one acceleration weight for both stages, w_stay 0.2 (ablation of the banded Gauss-Newton "
+                         "preconditioner)"))
 register_variant(Variant("trajopt_no_scene", "trajopt", {"use_scene": False},
                          "trajopt on the floor z = 0 whatever terrain the clip carries (ablation of the "
                          "interaction term, issue 21)"))
