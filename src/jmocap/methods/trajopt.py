@@ -1157,12 +1157,14 @@ def physics_curvature(model: Model, q: Array, prob: Problem, config: TrajOptConf
 
 def banded_preconditioner(blocks: Array, damping: float = 1e-3):
     """``y -> dx`` (:class:`Trajectory` to :class:`Trajectory`, linear) with ``S S^T = (H +
-    damping diag(H))^-1`` for the block-banded curvature ``H`` (``blocks``, e.g.
+    damping diag(H) + 1e-3 mean_frame(diag H))^-1`` for the block-banded curvature ``H`` (``blocks``, e.g.
     :func:`physics_curvature`): the variables in which L-BFGS (:func:`lbfgs`) sees that
     curvature as the identity. The trajectory's variables at zero rotation offsets are the
     steps ``dq`` (root position, body-frame rotation, hinges) the curvature is written in."""
     diag = jnp.diagonal(blocks[0], axis1=-2, axis2=-1)
-    reg = damping * diag + 1e-6 * jnp.mean(diag) + 1e-12
+    # the floor of diagonal_scale: a direction without curvature (a wrist's roll, which no
+    # keypoint sees) keeps a bounded scale instead of taking every stray gradient
+    reg = damping * diag + 1e-3 * jnp.mean(diag, -1, keepdims=True) + 1e-12
     root = banded_inverse_root(banded_factor(jax.lax.stop_gradient(blocks.at[0].add(jax.vmap(jnp.diag)(reg)))))
 
     def apply(y: Trajectory) -> Trajectory:
