@@ -172,7 +172,7 @@ class TrajOptConfig(KinematicConfig):
     w_com_accel: float = 100.0  # prior on the external force: the centre of mass accelerates little
     com_accel_sigma: float = 0.15  # of |c''| / g, i.e. of the net external force minus the weight, body weights
     com_accel_robust: float = 3.0  # Geman-McClure scale of that residual, in com_accel_sigma (0: quadratic)
-    w_stay: float = 1.0  # pull of the physics stage towards the kinematic fit
+    w_stay: float = 3.0  # pull of the physics stage towards the kinematic fit
     stay_sigma_m: float = 0.03
     force_regularisation: float = 1e-3  # of the edge coefficients (body weights): unique forces
     touch_m: float = 0.01  # a sole point this close to the floor may carry force, labelled or not
@@ -1157,14 +1157,16 @@ def physics_curvature(model: Model, q: Array, prob: Problem, config: TrajOptConf
 
 def banded_preconditioner(blocks: Array, damping: float = 1e-3):
     """``y -> dx`` (:class:`Trajectory` to :class:`Trajectory`, linear) with ``S S^T = (H +
-    damping diag(H) + 1e-3 mean_frame(diag H))^-1`` for the block-banded curvature ``H`` (``blocks``, e.g.
+    damping diag(H) + floor)^-1`` (the floor: 1e-3 of the frame's median hinge curvature) for
+    the block-banded curvature ``H`` (``blocks``, e.g.
     :func:`physics_curvature`): the variables in which L-BFGS (:func:`lbfgs`) sees that
     curvature as the identity. The trajectory's variables at zero rotation offsets are the
     steps ``dq`` (root position, body-frame rotation, hinges) the curvature is written in."""
     diag = jnp.diagonal(blocks[0], axis1=-2, axis2=-1)
-    # the floor of diagonal_scale: a direction without curvature (a wrist's roll, which no
-    # keypoint sees) keeps a bounded scale instead of taking every stray gradient
-    reg = damping * diag + 1e-3 * jnp.mean(diag, -1, keepdims=True) + 1e-12
+    # a floor at 1e-3 of the frame's median hinge curvature: a joint without curvature (a wrist,
+    # which no keypoint sees; the real hinges' curvatures lie within about 1e-2 of each other)
+    # keeps a bounded scale instead of taking every stray physics gradient at 1e9x
+    reg = damping * diag + 1e-3 * jnp.median(diag[:, 6:], -1, keepdims=True) + 1e-12
     root = banded_inverse_root(banded_factor(jax.lax.stop_gradient(blocks.at[0].add(jax.vmap(jnp.diag)(reg)))))
 
     def apply(y: Trajectory) -> Trajectory:
