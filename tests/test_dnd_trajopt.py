@@ -54,10 +54,10 @@ def test_the_better_reprojecting_camera_is_chosen_and_it_is_the_true_one(monkeyp
     track drifting at 1 m/s (what D&D's estimate of a still camera does, slower) keeps the still
     camera; a panning camera's clip given its true track keeps the track. In both the result is
     trajopt's own fit under the chosen camera, and the rule's quantities are reported."""
+    from jmocap import physics as P
     from jmocap.data.synthetic import SynthConfig, generate_clip
     from jmocap.inputs import ClipInputs
     from jmocap.methods import dnd as D
-    from jmocap import physics as P
     from jmocap.methods import trajopt as TO
     from jmocap.model import load_model
     from jmocap.weights import load_run_params

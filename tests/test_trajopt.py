@@ -103,6 +103,55 @@ def test_equations_of_motion_against_the_simulation():
     assert err[1:-1].mean() < 0.02, err.mean()
 
 
+def test_a_frame_the_labels_call_a_flight_carries_no_force():
+    """A stance frame of a simulated walk, its soles on the floor. Where the estimator called a
+    flight (no site labelled before the outlier test) the soles near the floor carry nothing, and
+    the whole root wrench the motion needs is residual; ``touch_in_flight`` lets them push; in a
+    frame with a label, also one the outlier test removed, they push, and the residual is small."""
+    clip, model = _walk()
+    q = jnp.asarray(clip.gt_q)
+    qd, qdd = TO.frame_velocities(q, jnp.float32(clip.fps), clip.num_frames)
+    support = np.flatnonzero(clip.gt_contacts.sum(-1) >= 2)
+    t = int(support[len(support) // 2])
+    kin = P.forward_kinematics(model, q[t])
+    config = TO.TrajOptConfig()
+    edges = P.friction_pyramid_edges(jnp.asarray([0.0, 0.0, 1.0]), config.mu)
+    pts, _, _ = S.sole_points(model, kin)
+    touching = np.asarray(pts[:, 2]) < config.touch_m
+    assert touching.any()
+
+    def solve(allowed, may_touch):
+        return TO.frame_dynamics(model, kin, q[t], qd[t], qdd[t], jnp.asarray(allowed), config, edges,
+                                 may_touch=may_touch)
+
+    none = np.zeros(8, bool)
+    first = int(np.flatnonzero(touching)[0])
+    flight = solve(none, False)
+    np.testing.assert_array_equal(np.asarray(flight.coeff), 0.0)
+    np.testing.assert_allclose(np.asarray(flight.residual), -np.asarray(flight.need), atol=1e-6)
+    assert np.linalg.norm(flight.need[:3]) > 0.5  # the motion needs about a body weight
+    for fd in (solve(none, True), solve(np.arange(8) == first, False)):
+        assert float(jnp.sum(fd.coeff)) > 0.5
+        assert np.all(np.asarray(fd.coeff)[~touching & (np.arange(8) != first)] == 0.0)
+        assert np.linalg.norm(fd.residual[:3]) < 0.5 * np.linalg.norm(flight.residual[:3])
+
+    # which frames may touch: those with a label before the outlier test, or all
+    T = 6
+    labels = np.zeros((T, 4), np.float32)
+    labels[1, 0] = labels[2, 3] = 1.0
+    prob = TO.Problem(keypoints=jnp.zeros((T, 25, 3)), intrinsics=jnp.eye(3), extrinsics=jnp.tile(jnp.eye(4), (T, 1, 1)),
+                      unit_px=jnp.float32(1.0), fps=jnp.float32(30.0), mask=jnp.ones(T, bool), length=jnp.int32(T),
+                      base_quat=jnp.tile(jnp.asarray([1.0, 0, 0, 0]), (T, 1)), prior_rr=jnp.zeros((T, 25, 3)),
+                      contacts=jnp.asarray(labels), anchor_kp=jnp.zeros((T, 25, 3)),
+                      supported=jnp.asarray(labels.any(-1)))
+    removed = prob.replace(contacts=prob.contacts.at[2].set(0.0))  # the outlier test's work
+    qs = jnp.tile(q[t], (T, 1))
+    for pr, cfg, expect in ((prob, config, labels.any(-1)), (removed, config, labels.any(-1)),
+                            (removed.replace(supported=None), config, [False, True, False, False, False, False]),
+                            (removed, config.replace(touch_in_flight=True), np.ones(T, bool))):
+        np.testing.assert_array_equal(np.asarray(TO.dynamics_inputs(model, qs, pr, cfg)[3]), expect)
+
+
 def test_centre_of_mass_prior_against_mujoco():
     """The physics stage's prior on the net external force, ``need[:3] - (0, 0, 1)``, is the
     centre of mass's acceleration over g: against central differences of MuJoCo C's

@@ -176,6 +176,9 @@ class TrajOptConfig(KinematicConfig):
     stay_sigma_m: float = 0.03
     force_regularisation: float = 1e-3  # of the edge coefficients (body weights): unique forces
     touch_m: float = 0.01  # a sole point this close to the floor may carry force, labelled or not
+    touch_in_flight: bool = False  # ... even in a frame the labels call a flight (no site labelled):
+    # off, the estimator's flight holds, and a sole the fit brings near the floor cannot carry the
+    # body through it (the centre-of-mass prior would have it do so, at about one body weight)
 
 
 def init_params(key: Array, model: Model, config: TrajOptConfig = TrajOptConfig()) -> dict:  # noqa: B008
@@ -257,6 +260,8 @@ class Problem:
     contacts: Array  # (T, 4) contact labels in {0, 1}
     anchor_kp: Array  # (T, J, 3) joints of the kinematic fit (the physics stage's anchor)
     scene: Scene | None = None  # the terrain (jmocap.scene); None or no boxes: the floor z = 0
+    supported: Array | None = None  # (T,) the estimator labelled some site (before the outlier
+    # test); None: any of ``contacts``
 
 
 def is_flat(scene: Scene | None) -> bool:
@@ -521,9 +526,10 @@ class FrameDynamics:
 
 
 def frame_dynamics(model: Model, kin, q: Array, qd: Array, qdd: Array, allowed: Array, config: TrajOptConfig,
-                   edges: Array, scene: Scene | None = None) -> FrameDynamics:
+                   edges: Array, scene: Scene | None = None, may_touch: Array | bool = True) -> FrameDynamics:
     """One frame's root-wrench residual after the best contact forces (variable projection):
-    forces only at ``allowed`` sole points (8,) bool (those of labelled sites) and at any within
+    forces only at ``allowed`` sole points (8,) bool (those of labelled sites) and, where
+    ``may_touch`` (a frame the labels do not call a flight, :func:`dynamics_inputs`), at any within
     ``config.touch_m`` of the floor or the ``scene``'s terrain (:func:`surface_heights`; its
     current height, a constant of the step), each a non-negative combination of the
     pyramid edges ``edges`` (4, 3). Units: the force rows in body weights, the torque rows in
@@ -535,6 +541,7 @@ def frame_dynamics(model: Model, kin, q: Array, qd: Array, qdd: Array, allowed: 
     # generalised root force of a unit body-weight force along each edge at each point
     A = jnp.einsum("pkv,ek->vpe", jacp[..., :6], edges)[:6] * weight  # (6, 8, 4)
     touching = jax.lax.stop_gradient(surface_heights(scene, pts)) < config.touch_m
+    touching = touching & may_touch
     allowed = allowed | touching  # touching: may push too
     A = A * allowed[None, :, None]
     A = A.reshape(6, -1) / weight
@@ -554,8 +561,8 @@ class FrameGeometry:
 
 def geometry(model: Model, q: Array, layout: str, *, dynamics=None) -> FrameGeometry:
     """Per frame, from one forward-kinematics pass: the layout's joints, the sole points and,
-    with ``dynamics = (qd, qdd, allowed, config, scene)``, the frame's dynamics
-    (:func:`frame_dynamics`)."""
+    with ``dynamics = (qd, qdd, allowed, may_touch, config, scene)`` (:func:`dynamics_inputs`),
+    the frame's dynamics (:func:`frame_dynamics`)."""
     if dynamics is None:
         def one(qt):
             kin = P.forward_kinematics(model, qt)
@@ -564,23 +571,29 @@ def geometry(model: Model, q: Array, layout: str, *, dynamics=None) -> FrameGeom
 
         kp, sole = jax.vmap(one)(q)
         return FrameGeometry(kp, sole)
-    qd, qdd, allowed, config, scene = dynamics
+    qd, qdd, allowed, may_touch, config, scene = dynamics
     edges = friction_pyramid_edges(jnp.asarray([0.0, 0.0, 1.0], q.dtype), config.mu)
 
-    def one_dyn(qt, v, a, ok):
+    def one_dyn(qt, v, a, ok, touch):
         kin = P.forward_kinematics(model, qt)
-        return P.keypoints(model, qt, layout, kin=kin), frame_dynamics(model, kin, qt, v, a, ok, config, edges, scene)
+        return P.keypoints(model, qt, layout, kin=kin), frame_dynamics(model, kin, qt, v, a, ok, config, edges, scene,
+                                                                       touch)
 
-    kp, fd = jax.vmap(one_dyn)(q, qd, qdd, allowed)
+    kp, fd = jax.vmap(one_dyn)(q, qd, qdd, allowed, may_touch)
     return FrameGeometry(kp, fd.points, fd)
 
 
 def dynamics_inputs(model: Model, q: Array, prob: Problem, config: TrajOptConfig):
-    """``(qd, qdd, labelled, config, scene)`` for :func:`geometry`: the finite differences and
-    the sole points (T, 8) of labelled sites (:func:`frame_dynamics` adds those touching the
-    floor or the problem's terrain)."""
+    """``(qd, qdd, labelled, may_touch, config, scene)`` for :func:`geometry`: the finite
+    differences, the sole points (T, 8) of labelled sites, and the frames (T,) where a sole
+    touching the floor or the problem's terrain may push too (:func:`frame_dynamics`): those the
+    estimator did not call a flight (``prob.supported``: some site labelled before the outlier
+    test, whose removed labels touching soles stand in for), every frame with
+    ``config.touch_in_flight``."""
     qd, qdd = frame_velocities(q, prob.fps, prob.length)
-    return qd, qdd, jnp.repeat(prob.contacts > 0.5, 2, axis=-1), config, prob.scene
+    supported = jnp.any(prob.contacts > 0.5, -1) if prob.supported is None else prob.supported
+    may_touch = supported | jnp.asarray(config.touch_in_flight, bool)
+    return qd, qdd, jnp.repeat(prob.contacts > 0.5, 2, axis=-1), may_touch, config, prob.scene
 
 
 def dynamics_term(fd: FrameDynamics, prob: Problem, config: TrajOptConfig) -> Array:
@@ -1211,6 +1224,7 @@ def problem(model: Model, inputs: ClipInputs, q_hat: Array, contacts: Array, con
         unit_px=unit, fps=jnp.asarray(inputs.fps, q_hat.dtype), mask=mask,
         length=jnp.sum(mask.astype(jnp.int32)), base_quat=base, prior_rr=prior_rr,
         contacts=(contacts > config.contact_threshold).astype(q_hat.dtype) * mask[:, None], anchor_kp=prior,
+        supported=jnp.any(contacts > config.contact_threshold, -1) & mask,
         scene=None if inputs.scene is None or not config.use_scene
         else jax.tree.map(lambda a: jnp.asarray(a, q_hat.dtype), inputs.scene),
     )
@@ -1469,10 +1483,13 @@ register_variant(Variant("trajopt_voted_contacts", "trajopt", {"contact_source":
                          "refiner (ablation)"))
 register_variant(Variant("trajopt_diagonal", "trajopt",
                          {"precondition": "diagonal", "kinematic_iterations": 60, "physics_iterations": 80,
-                          "w_accel_kinematic": -1.0, "w_stay": 0.2},
+                          "w_accel_kinematic": -1.0, "w_stay": 0.2, "touch_in_flight": True},
                          "trajopt as before stop 55: L-BFGS with the diagonal preconditioner, 60 + 80 iterations, "
                          "one acceleration weight for both stages, w_stay 0.2 (ablation of the banded Gauss-Newton "
                          "preconditioner)"))
+register_variant(Variant("trajopt_touch_in_flight", "trajopt", {"touch_in_flight": True},
+                         "trajopt as in stop 55: a sole point near the floor may carry force even in a frame "
+                         "the contact labels call a flight (ablation)"))
 register_variant(Variant("trajopt_no_scene", "trajopt", {"use_scene": False},
                          "trajopt on the floor z = 0 whatever terrain the clip carries (ablation of the "
                          "interaction term, issue 21)"))
