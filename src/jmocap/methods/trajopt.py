@@ -172,7 +172,7 @@ class TrajOptConfig(KinematicConfig):
     w_com_accel: float = 100.0  # prior on the external force: the centre of mass accelerates little
     com_accel_sigma: float = 0.15  # of |c''| / g, i.e. of the net external force minus the weight, body weights
     com_accel_robust: float = 3.0  # Geman-McClure scale of that residual, in com_accel_sigma (0: quadratic)
-    w_stay: float = 3.0  # pull of the physics stage towards the kinematic fit
+    w_stay: float = 30.0  # pull of the physics stage towards the kinematic fit (3 before stop 56)
     stay_sigma_m: float = 0.03
     force_regularisation: float = 1e-3  # of the edge coefficients (body weights): unique forces
     touch_m: float = 0.01  # a sole point this close to the floor may carry force, labelled or not
@@ -1488,8 +1488,8 @@ register_variant(Variant("trajopt_diagonal", "trajopt",
                          "one acceleration weight for both stages, w_stay 0.2 (ablation of the banded Gauss-Newton "
                          "preconditioner)"))
 register_variant(Variant("trajopt_touch_in_flight", "trajopt", {"touch_in_flight": True},
-                         "trajopt as in stop 55: a sole point near the floor may carry force even in a frame "
-                         "the contact labels call a flight (ablation)"))
+                         "trajopt with a sole point near the floor allowed to carry force even in a frame the "
+                         "contact labels call a flight, as before stop 56 (ablation)"))
 register_variant(Variant("trajopt_no_scene", "trajopt", {"use_scene": False},
                          "trajopt on the floor z = 0 whatever terrain the clip carries (ablation of the "
                          "interaction term, issue 21)"))
