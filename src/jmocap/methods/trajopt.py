@@ -145,7 +145,7 @@ class TrajOptConfig(KinematicConfig):
     depth_accel_sigma: float = 3.0  # the track's log-depth acceleration (1/s^2)
     min_depth_m: float = 0.3  # a TPNet root nearer the camera than this is no depth evidence
     w_accel: float = 20.0  # 3D joint accelerations
-    w_accel_kinematic: float = 5.0  # the kinematic stage's own w_accel (< 0: w_accel)
+    w_accel_kinematic: float = 2.5  # the kinematic stage's own w_accel (< 0: w_accel; 5 in stop 55)
     accel_sigma: float = 10.0  # m/s^2
     # --- contacts ---
     contact_threshold: float = 0.5
