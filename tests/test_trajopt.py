@@ -217,6 +217,53 @@ def test_objective_gradient_matches_finite_differences():
             assert abs(an - float(fd)) < 1e-2 * max(1.0, abs(float(fd))), (an, float(fd))
 
 
+@pytest.mark.parametrize("rotation", ["yaw", "full"])
+def test_turned_prior_is_the_best_rotation_and_its_gradient_is_exact(rotation):
+    """``prior_facing_fit`` turns the prior to the rotation of least squares ("yaw": about the
+    vertical, against a dense search over headings, its heights untouched; "full": Kabsch,
+    against the yaw solution and random rotations), and the prior energy it gives has the
+    gradient of ``min_R |rr - R p|^2`` (central differences of that minimum, float64), though
+    the rotation is held by a gradient stop; "tpnet": the prior as it is."""
+    config = get_method("trajopt").make_config(prior_rotation=rotation)
+    with x64():
+        rng = np.random.default_rng(7)
+        rr = jnp.asarray(rng.normal(0, 0.3, (25, 3)))
+        a = 2.3  # the prior faces 2.3 rad away (and, for "full", leans), with articulation of its own
+        rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        if rotation == "full":
+            b = 0.6
+            rot = rot @ np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+        prior = (rr + jnp.asarray(rng.normal(0, 0.05, (25, 3)))) @ jnp.asarray(rot).T
+
+        def energy(r, cfg=config):
+            return jnp.sum((r - TO.prior_facing_fit(r, prior, cfg)) ** 2)
+
+        e = float(energy(rr))
+        if rotation == "yaw":
+            np.testing.assert_array_equal(np.asarray(TO.prior_facing_fit(rr, prior, config)[:, 2]), np.asarray(prior[:, 2]))
+            phis = np.linspace(-np.pi, np.pi, 20001)
+            c, s = np.cos(phis)[:, None], np.sin(phis)[:, None]
+            p, r = np.asarray(prior), np.asarray(rr)
+            grid = np.sum((r[None, :, 0] - (c * p[:, 0] - s * p[:, 1])) ** 2
+                          + (r[None, :, 1] - (s * p[:, 0] + c * p[:, 1])) ** 2 + (r[None, :, 2] - p[:, 2]) ** 2, -1)
+            assert grid.min() - 1e-6 < e <= grid.min() + 1e-12  # the grid's resolution
+        else:
+            assert e < 0.05**2 * 25 * 3 * 2  # about the articulation's own difference
+            assert e <= float(energy(rr, get_method("trajopt").make_config(prior_rotation="yaw")))
+            for _ in range(20):
+                q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+                q = q * np.sign(np.linalg.det(q))
+                assert e <= float(jnp.sum((rr - prior @ jnp.asarray(q).T) ** 2))
+        g = jax.grad(energy)(rr)
+        for _ in range(4):
+            d = jnp.asarray(rng.normal(size=rr.shape))
+            eps = 1e-6
+            fd = (energy(rr + eps * d) - energy(rr - eps * d)) / (2 * eps)
+            np.testing.assert_allclose(float(jnp.sum(g * d)), float(fd), rtol=1e-6)
+        held = get_method("trajopt").make_config(prior_rotation="tpnet")
+        assert TO.prior_facing_fit(rr, prior, held) is prior
+
+
 def test_per_frame_jacobians_match_autodiff():
     """The analytic residual Jacobians of the per-frame Levenberg-Marquardt stage (point
     Jacobians through the pinhole projection, pose prior, active joint limits and floor rows)

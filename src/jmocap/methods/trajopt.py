@@ -135,6 +135,10 @@ class TrajOptConfig(KinematicConfig):
     # --- priors ---
     w_pose: float = 2.0  # TPNet's root-relative 3D joints
     pose_sigma_m: float = 0.1
+    # the prior's joints turned to the fit's each frame (:func:`prior_facing_fit`, since stop 57):
+    # "yaw" about the vertical, so the prior holds the body's articulation and lean but leaves its
+    # heading to the 2D evidence; "full" by any rotation (articulation only); "tpnet": not turned
+    prior_rotation: str = static("yaw")
     w_limits: float = 10.0
     limit_sigma_rad: float = 0.05
     # the per-frame fit's prior on the root's camera depth (log depth) towards the clip's depth
@@ -442,6 +446,35 @@ def geman_mcclure(r2: Array, c: Array) -> Array:
     return c2 * r2 / (c2 + r2)
 
 
+def prior_facing_fit(rr: Array, prior_rr: Array, config: TrajOptConfig) -> Array:
+    """The pose prior's root-relative joints ``prior_rr`` (..., J, 3) turned by the rotation that
+    brings them closest to the fit's ``rr`` (least squares), as ``prior_rotation`` says: "yaw",
+    about the world's vertical (closed form: ``atan2(sum r_y p_x - r_x p_y, sum r_x p_x + r_y
+    p_y)``); "full", any rotation (Kabsch); "tpnet", none.
+
+    A gradient stop holds the rotation. That is exact for the gradient of the energy the prior
+    then is, ``min_R |rr - R prior_rr|^2`` (the envelope theorem: at the minimising rotation the
+    energy's derivative in it is zero), and for its value; a Gauss-Newton matrix built with the
+    rotation held overstates the curvature of the turn, which the prior no longer has."""
+    if config.prior_rotation == "tpnet":
+        return prior_rr
+    rr, p = jax.lax.stop_gradient((rr, prior_rr))
+    if config.prior_rotation == "yaw":
+        num = jnp.sum(rr[..., 1] * p[..., 0] - rr[..., 0] * p[..., 1], -1)
+        den = jnp.sum(rr[..., 0] * p[..., 0] + rr[..., 1] * p[..., 1], -1)
+        phi = jnp.arctan2(num, den)[..., None]
+        c, s = jnp.cos(phi), jnp.sin(phi)
+        return jnp.stack([c * p[..., 0] - s * p[..., 1], s * p[..., 0] + c * p[..., 1], p[..., 2]], -1)
+    if config.prior_rotation == "full":
+        cov = jnp.einsum("...ja,...jb->...ab", rr, p)  # sum_j r_j p_j^T
+        u, _, vt = jnp.linalg.svd(cov)
+        d = jnp.sign(jnp.linalg.det(u @ vt))
+        u = u.at[..., :, 2].multiply(d[..., None])
+        rot = u @ vt  # argmax_R tr(R^T cov): R = U diag(1, 1, det) V^T
+        return jnp.einsum("...ab,...jb->...ja", rot, p)
+    raise ValueError(f"prior_rotation must be 'tpnet', 'yaw' or 'full', got {config.prior_rotation!r}")
+
+
 def kinematic_terms(model: Model, q: Array, geo: FrameGeometry, prob: Problem, config: TrajOptConfig,
                     gm_scale) -> dict[str, Array]:
     """The kinematic energies of a trajectory (see the module docstring), each a frame mean."""
@@ -455,7 +488,7 @@ def kinematic_terms(model: Model, q: Array, geo: FrameGeometry, prob: Problem, c
 
     root = jnp.mean(geo.keypoints3d[:, np.asarray(layout.root_indices)], 1, keepdims=True)
     rr = geo.keypoints3d - root
-    pose = jnp.sum((rr - prob.prior_rr) ** 2, (-1, -2)) / config.pose_sigma_m**2
+    pose = jnp.sum((rr - prior_facing_fit(rr, prob.prior_rr, config)) ** 2, (-1, -2)) / config.pose_sigma_m**2
 
     h = q[:, model.topo.hinge_qadr]
     lo = jnp.asarray(model.q_lower, q.dtype)[model.topo.hinge_qadr]
@@ -739,7 +772,7 @@ def diagonal_scale(model: Model, x: Trajectory, prob: Problem, config: TrajOptCo
         conf = jnp.sqrt(jnp.maximum(kp[:, 2], 1e-3))
         r1 = (conf[:, None] * (project(cam, p3) - kp[:, :2]) / prob.unit_px).ravel()
         rr = p3 - jnp.mean(p3[roots], 0)
-        r2 = (jnp.sqrt(config.w_pose) * (rr - prior_rr) / config.pose_sigma_m).ravel()
+        r2 = (jnp.sqrt(config.w_pose) * (rr - prior_facing_fit(rr, prior_rr, config)) / config.pose_sigma_m).ravel()
         # the diagonal of the acceleration term's [1, -2, 1] stencil: 1 + 4 + 1
         r3 = (jnp.sqrt(6.0 * config.w_accel) * prob.fps**2 / config.accel_sigma * p3).ravel()
         return jnp.concatenate([jnp.sqrt(config.w_reproj) * r1, r2, r3])
@@ -814,7 +847,7 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
     a_lim = jnp.sqrt(config.w_limits) / config.limit_sigma_rad
     a_floor = jnp.sqrt(config.w_floor) / config.floor_sigma
     other = jnp.concatenate([
-        a_pose * (rr - prior_rr).ravel(),
+        a_pose * (rr - prior_facing_fit(rr, prior_rr, config)).ravel(),
         a_lim * (jax.nn.relu(out_lo) - jax.nn.relu(out_hi)),
         a_floor * jax.nn.relu(config.floor_margin_m - sole_h),
     ])
@@ -1007,7 +1040,8 @@ def kinematic_normal_equations(model: Model, q: Array, prob: Problem, config: Tr
     rows = [(jnp.sqrt(w)[..., None, None] * je).reshape(T, -1, nv)]
 
     # pose prior on the root-relative joints
-    r = p3 - jnp.mean(p3[:, roots], 1, keepdims=True) - prob.prior_rr
+    rr = p3 - jnp.mean(p3[:, roots], 1, keepdims=True)
+    r = rr - prior_facing_fit(rr, prob.prior_rr, config)
     jr = jk - jnp.mean(jk[:, roots], 1, keepdims=True)
     wp = 2.0 * config.w_pose / n1 * m / config.pose_sigma_m**2
     g = g + wp[:, None] * jnp.einsum("tja,tjav->tv", r, jr)
@@ -1483,13 +1517,17 @@ register_variant(Variant("trajopt_voted_contacts", "trajopt", {"contact_source":
                          "refiner (ablation)"))
 register_variant(Variant("trajopt_diagonal", "trajopt",
                          {"precondition": "diagonal", "kinematic_iterations": 60, "physics_iterations": 80,
-                          "w_accel_kinematic": -1.0, "w_stay": 0.2, "touch_in_flight": True},
+                          "w_accel_kinematic": -1.0, "w_stay": 0.2, "touch_in_flight": True,
+                          "prior_rotation": "tpnet"},
                          "trajopt as before stop 55: L-BFGS with the diagonal preconditioner, 60 + 80 iterations, "
-                         "one acceleration weight for both stages, w_stay 0.2 (ablation of the banded Gauss-Newton "
-                         "preconditioner)"))
+                         "one acceleration weight for both stages, w_stay 0.2, the prior on TPNet's heading "
+                         "(ablation of the banded Gauss-Newton preconditioner)"))
 register_variant(Variant("trajopt_touch_in_flight", "trajopt", {"touch_in_flight": True},
                          "trajopt with a sole point near the floor allowed to carry force even in a frame the "
                          "contact labels call a flight, as before stop 56 (ablation)"))
+register_variant(Variant("trajopt_tpnet_heading", "trajopt", {"prior_rotation": "tpnet"},
+                         "trajopt with the pose prior on TPNet's heading as well as its articulation "
+                         "(stops 41-56; ablation of prior_rotation)"))
 register_variant(Variant("trajopt_no_scene", "trajopt", {"use_scene": False},
                          "trajopt on the floor z = 0 whatever terrain the clip carries (ablation of the "
                          "interaction term, issue 21)"))
