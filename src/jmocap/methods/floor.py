@@ -90,6 +90,11 @@ class FloorEstimate:
     usable: Array  # () bool: see the module docstring
 
 
+# the per-frame fit's pull towards TPNet's pose in :func:`fitted_frames` (trajopt's w_pose until
+# stop 56, with which the floor's accuracy was measured)
+FIT_W_POSE = 2.0
+
+
 def _geman_mcclure_weight(r: Array, scale) -> Array:
     """IRLS weight of the Geman-McClure loss ``r^2 / (r^2 + s^2)``: ``s^4 / (r^2 + s^2)^2``."""
     s2 = jnp.square(scale)
@@ -258,7 +263,12 @@ def fitted_frames(model: Model, tp: S.TargetPose, inputs: ClipInputs, config: An
     inputs = inputs.with_static_camera(E)
     R, t = E[:3, :3], E[:3, 3]
     q_hat = S.root_in_world(tp.q_hat, tp.rot_cam, tp.trans_cam, E)
-    no_floor = config.replace(w_floor=0.0, w_accel=0.0, w_contact_vel=0.0)
+    # The floor is read off the fitted bodies' stance relative to the camera, and in this fit
+    # nothing else holds it (no floor, contact or smoothness term; the world's vertical is the
+    # default camera's guess): the prior keeps TPNet's orientation of the body and the weight it
+    # was measured with (trajopt's own fit turns the prior and weighs it 4 since stop 57).
+    no_floor = config.replace(w_floor=0.0, w_accel=0.0, w_contact_vel=0.0, prior_rotation="tpnet",
+                              w_pose=FIT_W_POSE)
     prob = TO.problem(model, inputs, q_hat, jnp.zeros(tp.contact_logits.shape, dtype), no_floor)
     q1 = TO.per_frame_fit(model, q_hat, prob, no_floor, config.frame_iterations, config.gm_scale_initial,
                           config.gm_scale, TO.depth_track(q_hat, prob, no_floor), None, tile=config.frame_tile)

@@ -350,8 +350,10 @@ def reference_poses(model: Model, inputs: ClipInputs, tp, prob: Array, config: P
     if config.reference_source == "fit":
         from jmocap.methods import trajopt as TO
 
+        # the prior on TPNet's orientation too (trajopt turns it to the fit's since stop 57; pip's
+        # reference was not measured that way)
         tcfg = TO.TrajOptConfig(layout=config.layout, nets=config.nets, w_accel=0.0, w_contact_vel=0.0,
-                                w_pose=config.fit_w_pose)
+                                w_pose=config.fit_w_pose, prior_rotation="tpnet")
         prob_t = TO.problem(model, inputs, tp.q_hat, prob, tcfg)
         # the image scale of the robust reprojection: per frame, over it and the 12 frames
         # before it (trajopt uses the whole clip's; a chunk must see what the whole clip sees)

@@ -90,7 +90,7 @@ from jmocap.physics.linalg import (
     spd_inverse,
 )
 from jmocap.physics.qp import friction_pyramid_edges
-from jmocap.physics.rotations import quat_error, quat_exp, quat_mul, quat_normalize
+from jmocap.physics.rotations import quat_error, quat_exp, quat_mul, quat_normalize, quat_to_mat
 from jmocap.scene import Scene, sdf
 
 Array = jnp.ndarray
@@ -133,12 +133,13 @@ class TrajOptConfig(KinematicConfig):
     # (keypoint_jitter_px; 0: off, the default: docs/method.md, "The reprojection unit")
     noise_unit: float = 0.0
     # --- priors ---
-    w_pose: float = 2.0  # TPNet's root-relative 3D joints
+    w_pose: float = 4.0  # TPNet's root-relative 3D joints, turned as prior_rotation says (2 before stop 57)
     pose_sigma_m: float = 0.1
     # the prior's joints turned to the fit's each frame (:func:`prior_facing_fit`, since stop 57):
-    # "yaw" about the vertical, so the prior holds the body's articulation and lean but leaves its
-    # heading to the 2D evidence; "full" by any rotation (articulation only); "tpnet": not turned
-    prior_rotation: str = static("yaw")
+    # "full" by any rotation, so the prior holds the articulation and leaves the body's heading
+    # and lean to the 2D evidence, the floor and the smoothness; "yaw" about the vertical only
+    # (TPNet's lean kept); "tpnet": not turned (stops 41-56)
+    prior_rotation: str = static("full")
     w_limits: float = 10.0
     limit_sigma_rad: float = 0.05
     # the per-frame fit's prior on the root's camera depth (log depth) towards the clip's depth
@@ -446,16 +447,51 @@ def geman_mcclure(r2: Array, c: Array) -> Array:
     return c2 * r2 / (c2 + r2)
 
 
+def _best_rotation(rr: Array, p: Array) -> Array:
+    """The rotation ``R`` (..., 3, 3) minimising ``sum_j |rr_j - R p_j|^2`` over proper rotations
+    (Horn 1987): the unit quaternion of the largest eigenvalue of the symmetric 4x4 ``N`` of
+    ``S = sum_j p_j rr_j^T``. The eigenvector by repeated squaring of ``N + c I`` (``c`` = the
+    bound ``sqrt(3) |S|_F`` on the eigenvalues' magnitude, so the shifted matrix is positive
+    semi-definite and its largest eigenvalue dominates), normalised at each of 16 squarings,
+    then its largest column: no LAPACK call (a batched one can deadlock XLA's CPU pool,
+    :mod:`jmocap.physics.linalg`), and always a proper rotation, where the polar factor of ``S``
+    can be a reflection."""
+    S = jnp.einsum("...ja,...jb->...ab", p, rr)
+    xx, xy, xz = S[..., 0, 0], S[..., 0, 1], S[..., 0, 2]
+    yx, yy, yz = S[..., 1, 0], S[..., 1, 1], S[..., 1, 2]
+    zx, zy, zz = S[..., 2, 0], S[..., 2, 1], S[..., 2, 2]
+    N = jnp.stack([
+        jnp.stack([xx + yy + zz, yz - zy, zx - xz, xy - yx], -1),
+        jnp.stack([yz - zy, xx - yy - zz, xy + yx, zx + xz], -1),
+        jnp.stack([zx - xz, xy + yx, -xx + yy - zz, yz + zy], -1),
+        jnp.stack([xy - yx, zx + xz, yz + zy, -xx - yy + zz], -1),
+    ], -2)
+    c = jnp.sqrt(3.0) * jnp.sqrt(jnp.sum(S * S, (-1, -2)))[..., None, None] + 1e-12
+    M = N + c * jnp.eye(4, dtype=S.dtype)
+
+    def square(_, M):
+        M = M @ M
+        return M / jnp.sqrt(jnp.sum(M * M, (-1, -2), keepdims=True))
+
+    M = jax.lax.fori_loop(0, 16, square, M / c)
+    cols = jnp.sum(M * M, -2)  # (..., 4): squared norms of the columns of ~ v v^T
+    v = jnp.take_along_axis(M, jnp.argmax(cols, -1)[..., None, None], -1)[..., 0]
+    v = v / jnp.sqrt(jnp.sum(v * v, -1, keepdims=True))
+    return quat_to_mat(v)
+
+
 def prior_facing_fit(rr: Array, prior_rr: Array, config: TrajOptConfig) -> Array:
     """The pose prior's root-relative joints ``prior_rr`` (..., J, 3) turned by the rotation that
     brings them closest to the fit's ``rr`` (least squares), as ``prior_rotation`` says: "yaw",
     about the world's vertical (closed form: ``atan2(sum r_y p_x - r_x p_y, sum r_x p_x + r_y
-    p_y)``); "full", any rotation (Kabsch); "tpnet", none.
+    p_y)``); "full", any rotation (:func:`_best_rotation`); "tpnet", none.
 
     A gradient stop holds the rotation. That is exact for the gradient of the energy the prior
     then is, ``min_R |rr - R prior_rr|^2`` (the envelope theorem: at the minimising rotation the
-    energy's derivative in it is zero), and for its value; a Gauss-Newton matrix built with the
-    rotation held overstates the curvature of the turn, which the prior no longer has."""
+    energy's derivative in it is zero), and for its value, not for its second derivatives: the
+    Gauss-Newton rows built from it hold the turn, and so overstate the curvature of a turn of
+    the whole body, which this energy does not resist (measured better than rows with the turn
+    taken out: docs/method.md, stop 57)."""
     if config.prior_rotation == "tpnet":
         return prior_rr
     rr, p = jax.lax.stop_gradient((rr, prior_rr))
@@ -466,12 +502,7 @@ def prior_facing_fit(rr: Array, prior_rr: Array, config: TrajOptConfig) -> Array
         c, s = jnp.cos(phi), jnp.sin(phi)
         return jnp.stack([c * p[..., 0] - s * p[..., 1], s * p[..., 0] + c * p[..., 1], p[..., 2]], -1)
     if config.prior_rotation == "full":
-        cov = jnp.einsum("...ja,...jb->...ab", rr, p)  # sum_j r_j p_j^T
-        u, _, vt = jnp.linalg.svd(cov)
-        d = jnp.sign(jnp.linalg.det(u @ vt))
-        u = u.at[..., :, 2].multiply(d[..., None])
-        rot = u @ vt  # argmax_R tr(R^T cov): R = U diag(1, 1, det) V^T
-        return jnp.einsum("...ab,...jb->...ja", rot, p)
+        return jnp.einsum("...ab,...jb->...ja", _best_rotation(rr, p), p)
     raise ValueError(f"prior_rotation must be 'tpnet', 'yaw' or 'full', got {config.prior_rotation!r}")
 
 
@@ -837,7 +868,8 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
     R, t = cam.extrinsics[:3, :3], cam.extrinsics[:3, 3]
     # priors
     rr = p3 - jnp.mean(p3[roots], 0)
-    j_rr = jk - jnp.mean(jk[roots], 0)
+    turned = prior_facing_fit(rr, prior_rr, config)
+    j_rr = jk - jnp.mean(jk[roots], 0)  # the turn held (prior_facing_fit; docs/method.md, stop 57)
     hinge = q[model.topo.hinge_qadr]
     lo = jnp.asarray(model.q_lower, q.dtype)[model.topo.hinge_qadr]
     hi = jnp.asarray(model.q_upper, q.dtype)[model.topo.hinge_qadr]
@@ -847,7 +879,7 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
     a_lim = jnp.sqrt(config.w_limits) / config.limit_sigma_rad
     a_floor = jnp.sqrt(config.w_floor) / config.floor_sigma
     other = jnp.concatenate([
-        a_pose * (rr - prior_facing_fit(rr, prior_rr, config)).ravel(),
+        a_pose * (rr - turned).ravel(),
         a_lim * (jax.nn.relu(out_lo) - jax.nn.relu(out_hi)),
         a_floor * jax.nn.relu(config.floor_margin_m - sole_h),
     ])
@@ -1041,6 +1073,7 @@ def kinematic_normal_equations(model: Model, q: Array, prob: Problem, config: Tr
 
     # pose prior on the root-relative joints
     rr = p3 - jnp.mean(p3[:, roots], 1, keepdims=True)
+    # the prior's rows with its turn held (prior_facing_fit; docs/method.md, stop 57)
     r = rr - prior_facing_fit(rr, prob.prior_rr, config)
     jr = jk - jnp.mean(jk[:, roots], 1, keepdims=True)
     wp = 2.0 * config.w_pose / n1 * m / config.pose_sigma_m**2
@@ -1518,16 +1551,16 @@ register_variant(Variant("trajopt_voted_contacts", "trajopt", {"contact_source":
 register_variant(Variant("trajopt_diagonal", "trajopt",
                          {"precondition": "diagonal", "kinematic_iterations": 60, "physics_iterations": 80,
                           "w_accel_kinematic": -1.0, "w_stay": 0.2, "touch_in_flight": True,
-                          "prior_rotation": "tpnet"},
+                          "prior_rotation": "tpnet", "w_pose": 2.0},
                          "trajopt as before stop 55: L-BFGS with the diagonal preconditioner, 60 + 80 iterations, "
-                         "one acceleration weight for both stages, w_stay 0.2, the prior on TPNet's heading "
-                         "(ablation of the banded Gauss-Newton preconditioner)"))
+                         "one acceleration weight for both stages, w_stay 0.2, the prior on TPNet's orientation "
+                         "with w_pose 2 (ablation of the banded Gauss-Newton preconditioner)"))
 register_variant(Variant("trajopt_touch_in_flight", "trajopt", {"touch_in_flight": True},
                          "trajopt with a sole point near the floor allowed to carry force even in a frame the "
                          "contact labels call a flight, as before stop 56 (ablation)"))
-register_variant(Variant("trajopt_tpnet_heading", "trajopt", {"prior_rotation": "tpnet"},
-                         "trajopt with the pose prior on TPNet's heading as well as its articulation "
-                         "(stops 41-56; ablation of prior_rotation)"))
+register_variant(Variant("trajopt_tpnet_orientation", "trajopt", {"prior_rotation": "tpnet", "w_pose": 2.0},
+                         "trajopt with the pose prior on TPNet's orientation of the body as well as its "
+                         "articulation, w_pose 2: stop 56's configuration (ablation of prior_rotation)"))
 register_variant(Variant("trajopt_no_scene", "trajopt", {"use_scene": False},
                          "trajopt on the floor z = 0 whatever terrain the clip carries (ablation of the "
                          "interaction term, issue 21)"))
