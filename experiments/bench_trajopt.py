@@ -65,8 +65,13 @@ def main() -> None:
             raise SystemExit("--against needs --no-stages")
         import json
 
-        changes = {k: json.loads(v) if v[:1] in "-0123456789[{tn" else v
-                   for k, v in (a.split("=", 1) for a in args.against)}
+        def value(v):  # a JSON value (numbers, true/false, lists) or else the string itself
+            try:
+                return json.loads(v)
+            except json.JSONDecodeError:
+                return v
+
+        changes = {k: value(v) for k, v in (a.split("=", 1) for a in args.against)}
         variants["against"] = base.replace(**changes)
     if not args.no_stages:
         variants.update({"no physics": base.replace(physics_iterations=0),
