@@ -220,10 +220,11 @@ def test_objective_gradient_matches_finite_differences():
 @pytest.mark.parametrize("rotation", ["yaw", "full"])
 def test_turned_prior_is_the_best_rotation_and_its_gradient_is_exact(rotation):
     """``prior_facing_fit`` turns the prior to the rotation of least squares ("yaw": about the
-    vertical, against a dense search over headings, its heights untouched; "full": Kabsch,
-    against the yaw solution and random rotations), and the prior energy it gives has the
-    gradient of ``min_R |rr - R p|^2`` (central differences of that minimum, float64), though
-    the rotation is held by a gradient stop; "tpnet": the prior as it is."""
+    vertical, against a dense search over headings, its heights untouched; "full": against
+    NumPy's SVD (Kabsch, a mirrored pair too), the yaw solution and random rotations), and the
+    prior energy it gives has the gradient of ``min_R |rr - R p|^2`` (central differences of
+    that minimum, float64), though the rotation is held by a gradient stop; "tpnet": the prior
+    as it is."""
     config = get_method("trajopt").make_config(prior_rotation=rotation)
     with x64():
         rng = np.random.default_rng(7)
@@ -582,7 +583,7 @@ def test_kinematic_gauss_newton_matrix_is_the_hessian_at_zero_residuals():
     blocks, assembled densely, equal autodiff's Hessian of :func:`objective`, float64; the
     contact-height rows are off here (their residual, a height, is not zero) and their
     gradient is tested above. The prior's turn is held in both (a gradient stop in the
-    objective, the rows with the turn in them here: :func:`kinematic_normal_equations`)."""
+    objective; rows built with the turn held in :func:`kinematic_normal_equations`)."""
     clip, _ = _walk()
     with x64():
         model = character(clip.height_m, clip.mass_kg)
