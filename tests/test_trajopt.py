@@ -272,6 +272,74 @@ def test_turned_prior_is_the_best_rotation_and_its_gradient_is_exact(rotation):
         assert TO.prior_facing_fit(rr, prior, held) is prior
 
 
+
+def test_ball_joint_limits_judge_either_euler_triple():
+    """A ball joint written as three hinges about orthogonal axes (hips, ankles, spine, neck,
+    shoulders) has two Euler triples per rotation, ``(a, b, c)`` and ``(a + pi, pi - b, c +
+    pi)``: MuJoCo C's forward kinematics of the two place every body alike. ``limit_angles``
+    judges the triple inside the limits (a pose written in the other is not penalised), its
+    sign is the derivative (central differences); ``continuous_hinges`` gives back a smooth
+    trajectory whose frames were scattered over both triples and shifted by 2 pi."""
+    model = character()
+    config = get_method("trajopt").make_config()
+    mj = model.mj
+    hq = np.asarray(model.topo.hinge_qadr)
+    tri = TO.ball_triples(model)
+    hinge_names = {int(mj.jnt_qposadr[j]): mj.joint(j).name for j in range(mj.njnt) if mj.jnt_type[j] == 3}
+    bodies = sorted({hinge_names[int(hq[i])].rsplit("_", 1)[0] for i in tri.ravel()})
+    assert bodies == ["left_ankle", "left_hip", "left_shoulder", "neck", "right_ankle", "right_hip",
+                      "right_shoulder", "spine1", "spine3"]
+    lo, hi = np.asarray(model.q_lower)[hq], np.asarray(model.q_upper)[hq]
+
+    def other(h):
+        h = h.copy()
+        a = h[tri]
+        alt = np.stack([a[:, 0] + np.pi, np.pi - a[:, 1], a[:, 2] + np.pi], -1)
+        h[tri] = (alt + np.pi) % (2 * np.pi) - np.pi
+        return h
+
+    def bodies_at(q):
+        d = mujoco.MjData(mj)
+        d.qpos[:] = q
+        mujoco.mj_kinematics(mj, d)
+        return np.concatenate([d.xpos.ravel(), d.xmat.ravel()])
+
+    rng = np.random.default_rng(3)
+    with x64():
+        T = 40
+        t = np.linspace(0, 1, T)[:, None]
+        # a smooth trajectory inside the limits, 0.1 rad from them
+        phase, mid, amp = rng.uniform(0, 6, hq.size), (lo + hi) / 2, (hi - lo) / 2 - 0.1
+        h = mid + amp * np.sin(2 * np.pi * t + phase)  # (T, H)
+        q = np.tile(np.asarray(model.qpos0, float), (T, 1))
+        q[:, hq] = h
+        for k in range(0, T, 7):
+            qa = q[k].copy()
+            qa[hq] = other(h[k])
+            np.testing.assert_allclose(bodies_at(qa), bodies_at(q[k]), atol=1e-12)
+            assert np.any(qa[hq] < lo - 0.05) or np.any(qa[hq] > hi + 0.05)  # out of limits as written
+            judged, sign = TO.limit_angles(model, jnp.asarray(qa[hq]), config)
+            np.testing.assert_allclose(np.asarray(judged), h[k], atol=1e-12)  # judged in the limits' triple
+            assert np.all(np.asarray(sign)[tri[:, 1]] == -1.0) and np.sum(np.asarray(sign) == -1.0) == len(tri)
+            as_is, _ = TO.limit_angles(model, jnp.asarray(qa[hq]), config.replace(limit_branches=False))
+            np.testing.assert_array_equal(np.asarray(as_is), qa[hq])
+            eps = 1e-6
+            for i in tri[:, 1]:
+                e = np.zeros(hq.size)
+                e[i] = eps
+                fd = (TO.limit_angles(model, jnp.asarray(qa[hq] + e), config)[0][i]
+                      - TO.limit_angles(model, jnp.asarray(qa[hq] - e), config)[0][i]) / (2 * eps)
+                assert float(fd) == pytest.approx(float(sign[i]), abs=1e-6)
+        # scatter: frames after the first in the other triple or shifted by 2 pi; the continuous
+        # trajectory is the original
+        scattered = q.copy()
+        for k in range(1, T):
+            if rng.random() < 0.5:
+                scattered[k, hq] = other(h[k])
+            scattered[k, hq[tri.ravel()]] += 2 * np.pi * rng.integers(-1, 2, tri.size)
+        back = np.asarray(TO.continuous_hinges(model, jnp.asarray(scattered), config))
+        np.testing.assert_allclose(back, q, atol=1e-12)
+
 def test_per_frame_jacobians_match_autodiff():
     """The analytic residual Jacobians of the per-frame Levenberg-Marquardt stage (point
     Jacobians through the pinhole projection, pose prior, active joint limits and floor rows)

@@ -141,6 +141,7 @@ class TrajOptConfig(KinematicConfig):
     # (TPNet's lean kept); "tpnet": not turned (stops 41-56)
     prior_rotation: str = static("full")
     w_limits: float = 10.0
+    limit_branches: bool = static(True)  # a ball joint's limits judge the better of its two Euler triples (limit_angles)
     limit_sigma_rad: float = 0.05
     # the per-frame fit's prior on the root's camera depth (log depth) towards the clip's depth
     # track (:func:`depth_track`); it only matters where the frame's own evidence is weak
@@ -440,6 +441,89 @@ def _frames_mean(x: Array, w: Array) -> Array:
     return jnp.sum(x * w) / jnp.maximum(jnp.sum(w), 1.0)
 
 
+def ball_triples(model: Model) -> np.ndarray:
+    """(K, 3) positions in the hinge list (``model.topo.hinge_qadr``) of the joints that are a
+    ball joint written as three Euler angles: a body's three hinges about mutually orthogonal
+    axes through one point, in the order they compose (hips, ankles, spine, neck and shoulders
+    of jmocap's humanoid). Static: read from the MuJoCo model at trace time."""
+    mj = model.mj
+    where = {int(a): i for i, a in enumerate(np.asarray(model.topo.hinge_qadr))}
+    by_body: dict[int, list[int]] = {}
+    for j in range(mj.njnt):
+        if int(mj.jnt_type[j]) == 3:  # mjJNT_HINGE
+            by_body.setdefault(int(mj.jnt_bodyid[j]), []).append(j)
+    out = []
+    for js in by_body.values():
+        if len(js) != 3:
+            continue
+        axes = np.asarray(mj.jnt_axis[js], float)
+        axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+        if np.abs(axes @ axes.T - np.eye(3)).max() < 1e-9 and np.ptp(np.asarray(mj.jnt_pos[js]), 0).max() < 1e-12:
+            out.append([where[int(mj.jnt_qposadr[j])] for j in js])
+    return np.asarray(out, int).reshape(-1, 3)
+
+
+def limit_angles(model: Model, h: Array, config: TrajOptConfig) -> tuple[Array, Array]:
+    """The hinge angles (..., H) the joint limits judge, and the derivative (..., H) (+-1) of each
+    in the hinge's own angle. A ball joint's Euler angles ``(a, b, c)`` about orthogonal axes
+    ``u, v, w`` and ``(a + pi, pi - b, c + pi)`` (mod 2 pi) are the same rotation
+    (``R_u(pi) R_v(pi - b) R_w(pi) = R_v(b)``), so with ``config.limit_branches`` each ball
+    joint (:func:`ball_triples`) is judged in the triple, each angle taken within pi of 0,
+    that violates its limits less (the
+    choice held by a gradient stop; the current one on a tie). A pose its limits allow in
+    either triple is then allowed, and a fit started in TPNet's triple can reach the other (a
+    raised arm: docs/method.md, stop 58). Without it, the angles as they are."""
+    sign = jnp.ones_like(h)
+    tri = ball_triples(model)
+    if not config.limit_branches or tri.size == 0:
+        return h, sign
+    lo = jnp.asarray(model.q_lower, h.dtype)[model.topo.hinge_qadr][tri]
+    hi = jnp.asarray(model.q_upper, h.dtype)[model.topo.hinge_qadr][tri]
+    a = h[..., tri]  # (..., K, 3)
+    other = jnp.stack([a[..., 0] + jnp.pi, jnp.pi - a[..., 1], a[..., 2] + jnp.pi], -1)
+    a, other = (x - 2 * jnp.pi * jnp.round(x / (2 * jnp.pi)) for x in (a, other))  # within pi of 0
+
+    def violation(x):
+        return jnp.sum(jax.nn.relu(lo - x) ** 2 + jax.nn.relu(x - hi) ** 2, -1)
+
+    use = jax.lax.stop_gradient(violation(other) < violation(a))  # (..., K)
+    chosen = jnp.where(use[..., None], other, a)
+    h = h.at[..., tri.ravel()].set(chosen.reshape(*chosen.shape[:-2], -1))
+    sign = sign.at[..., tri[:, 1]].set(jnp.where(use, -1.0, 1.0).astype(h.dtype))
+    return h, sign
+
+
+def continuous_hinges(model: Model, q: Array, config: TrajOptConfig) -> Array:
+    """A trajectory ``q`` (T, nq) with each ball joint (:func:`ball_triples`) written, frame by
+    frame, in the Euler triple nearest the previous frame's, and each angle within pi of it;
+    the first frame in the triple :func:`limit_angles` judges. The same poses; what changes is
+    that the angles are continuous where the rotation is, so finite differences of ``q`` (the
+    physics stage's velocities) are the joints' motion, where the per-frame fit, free to reach
+    either triple (:func:`limit_angles`), can leave neighbouring frames in different ones."""
+    tri = ball_triples(model)
+    if not config.limit_branches or tri.size == 0:
+        return q
+    hq = np.asarray(model.topo.hinge_qadr)
+    cols = hq[tri]  # (K, 3) q addresses
+    a = q[:, cols]  # (T, K, 3)
+    first = limit_angles(model, q[0, hq], config)[0][tri]
+
+    def wrap(x):
+        return x - 2 * jnp.pi * jnp.round(x / (2 * jnp.pi))
+
+    def step(prev, x):
+        other = jnp.stack([x[..., 0] + jnp.pi, jnp.pi - x[..., 1], x[..., 2] + jnp.pi], -1)
+        near = lambda y: prev + wrap(y - prev)  # noqa: E731
+        x, other = near(x), near(other)
+        use = jnp.sum((other - prev) ** 2, -1) < jnp.sum((x - prev) ** 2, -1)
+        out = jnp.where(use[..., None], other, x)
+        return out, out
+
+    _, rest = jax.lax.scan(step, first, a[1:])
+    a = jnp.concatenate([first[None], rest], 0)
+    return q.at[:, cols.ravel()].set(a.reshape(q.shape[0], -1))
+
+
 def geman_mcclure(r2: Array, c: Array) -> Array:
     """Geman-McClure robust cost of squared residuals: ``c^2 r^2 / (c^2 + r^2)`` (~ r^2 near 0,
     bounded by c^2)."""
@@ -531,7 +615,7 @@ def kinematic_terms(model: Model, q: Array, geo: FrameGeometry, prob: Problem, c
     rr = geo.keypoints3d - root
     pose = jnp.sum((rr - prior_facing_fit(rr, prob.prior_rr, config)) ** 2, (-1, -2)) / config.pose_sigma_m**2
 
-    h = q[:, model.topo.hinge_qadr]
+    h, _ = limit_angles(model, q[:, model.topo.hinge_qadr], config)
     lo = jnp.asarray(model.q_lower, q.dtype)[model.topo.hinge_qadr]
     hi = jnp.asarray(model.q_upper, q.dtype)[model.topo.hinge_qadr]
     limits = jnp.sum(jax.nn.relu(lo - h) ** 2 + jax.nn.relu(h - hi) ** 2, -1) / config.limit_sigma_rad**2
@@ -880,7 +964,7 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
     rr = p3 - jnp.mean(p3[roots], 0)
     turned = prior_facing_fit(rr, prior_rr, config)
     j_rr = jk - jnp.mean(jk[roots], 0)  # the turn held (prior_facing_fit; docs/method.md, stop 57)
-    hinge = q[model.topo.hinge_qadr]
+    hinge, lim_sign = limit_angles(model, q[model.topo.hinge_qadr], config)
     lo = jnp.asarray(model.q_lower, q.dtype)[model.topo.hinge_qadr]
     hi = jnp.asarray(model.q_upper, q.dtype)[model.topo.hinge_qadr]
     sel = jnp.zeros((hinge.shape[0], model.nv), q.dtype).at[np.arange(hinge.shape[0]), model.topo.hinge_dofadr].set(1.0)
@@ -895,7 +979,7 @@ def _frame_residuals(model: Model, q: Array, prior_rr: Array, cam: Camera, confi
     ])
     j_other = jnp.concatenate([
         a_pose * j_rr.reshape(-1, model.nv),
-        -a_lim * ((out_lo > 0).astype(q.dtype) + (out_hi > 0).astype(q.dtype))[:, None] * sel,
+        -a_lim * (lim_sign * ((out_lo > 0).astype(q.dtype) + (out_hi > 0).astype(q.dtype)))[:, None] * sel,
         -a_floor * (sole_h < config.floor_margin_m).astype(q.dtype)[:, None] * j_h,
     ])
     if depth is not None:
@@ -1102,12 +1186,12 @@ def kinematic_normal_equations(model: Model, q: Array, prob: Problem, config: Tr
     H0 = gram(rows, rows)
 
     # joint limits (the hinge coordinates are dq's own)
-    h = q[:, model.topo.hinge_qadr]
+    h, lim_sign = limit_angles(model, q[:, model.topo.hinge_qadr], config)
     lo = jnp.asarray(model.q_lower, dt)[model.topo.hinge_qadr]
     hi = jnp.asarray(model.q_upper, dt)[model.topo.hinge_qadr]
     wl = 2.0 * config.w_limits / n1 * m[:, None] / config.limit_sigma_rad**2
     dof = np.asarray(model.topo.hinge_dofadr)
-    g = g.at[:, dof].add(wl * (jax.nn.relu(h - hi) - jax.nn.relu(lo - h)))
+    g = g.at[:, dof].add(wl * lim_sign * (jax.nn.relu(h - hi) - jax.nn.relu(lo - h)))
     H0 = H0.at[:, dof, dof].add(wl * ((h > hi) | (h < lo)).astype(dt))
 
     # 3D joint accelerations: a_i = (x_{i+2} - 2 x_{i+1} + x_i) fps^2 at the centre i + 1
@@ -1360,6 +1444,7 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
                        config.gm_scale, depth_track(q_init, prob, config),
                        prob.contacts if config.frame_contacts else None, tile=config.frame_tile)
     before = f0(x0, prob)
+    q1 = continuous_hinges(model, q1, config)
     x1, base = from_q(model, q1)
     prob = prob.replace(base_quat=base)
     rep1 = StageReport(before, f0(x1, prob), jnp.zeros((), q1.dtype), jnp.asarray(config.frame_iterations))
@@ -1386,6 +1471,10 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
         q_kin = to_q(model, x2, prob.base_quat)
     else:
         raise ValueError(f"unknown kinematic_solver {config.kinematic_solver!r} (lbfgs, gauss_newton)")
+    # each ball joint's angles continuous over the clip (the same poses): the physics stage's
+    # finite differences are then the joints' motion
+    q_kin = continuous_hinges(model, q_kin, config)
+    x2 = x2.replace(hinges=q_kin[:, model.topo.hinge_qadr])
     # stage 2: physics, anchored to the kinematic fit
     prob = prob.replace(anchor_kp=jax.vmap(lambda x: P.keypoints(model, x, config.layout))(q_kin))
     if config.precondition == "banded":  # the curvature is written at zero rotation offsets
@@ -1561,16 +1650,22 @@ register_variant(Variant("trajopt_voted_contacts", "trajopt", {"contact_source":
 register_variant(Variant("trajopt_diagonal", "trajopt",
                          {"precondition": "diagonal", "kinematic_iterations": 60, "physics_iterations": 80,
                           "w_accel_kinematic": -1.0, "w_stay": 0.2, "touch_in_flight": True,
-                          "prior_rotation": "tpnet", "w_pose": 2.0},
+                          "prior_rotation": "tpnet", "w_pose": 2.0, "limit_branches": False},
                          "trajopt as before stop 55: L-BFGS with the diagonal preconditioner, 60 + 80 iterations, "
                          "one acceleration weight for both stages, w_stay 0.2, the prior on TPNet's orientation "
-                         "with w_pose 2 (ablation of the banded Gauss-Newton preconditioner)"))
+                         "with w_pose 2, joint limits on the Euler angles as written (ablation of the banded "
+                         "Gauss-Newton preconditioner)"))
 register_variant(Variant("trajopt_touch_in_flight", "trajopt", {"touch_in_flight": True},
                          "trajopt with a sole point near the floor allowed to carry force even in a frame the "
                          "contact labels call a flight, as before stop 56 (ablation)"))
-register_variant(Variant("trajopt_tpnet_orientation", "trajopt", {"prior_rotation": "tpnet", "w_pose": 2.0},
+register_variant(Variant("trajopt_tpnet_orientation", "trajopt",
+                         {"prior_rotation": "tpnet", "w_pose": 2.0, "limit_branches": False},
                          "trajopt with the pose prior on TPNet's orientation of the body as well as its "
-                         "articulation, w_pose 2: stop 56's configuration (ablation of prior_rotation)"))
+                         "articulation, w_pose 2, joint limits on the Euler angles as written: stop 56's "
+                         "configuration (ablation of prior_rotation)"))
+register_variant(Variant("trajopt_written_triples", "trajopt", {"limit_branches": False},
+                         "trajopt with each ball joint's limits on its three Euler angles as written, not on the "
+                         "better of its two triples: stop 57's configuration (ablation of limit_branches)"))
 register_variant(Variant("trajopt_no_scene", "trajopt", {"use_scene": False},
                          "trajopt on the floor z = 0 whatever terrain the clip carries (ablation of the "
                          "interaction term, issue 21)"))
