@@ -12,7 +12,8 @@ character (its bone lengths, joint limits and mass distribution), in two stages:
    * a confidence-weighted robust reprojection error (Geman-McClure, in percent of the person's
      height in the image, so one set of weights serves every resolution and distance);
    * a prior towards TPNet's root-relative 3D joints (their ``E_data``: it holds the depth that
-     one view cannot see) and joint-limit penalties from the model;
+     one view cannot see) and joint-limit penalties from the model (a ball joint's three Euler
+     angles judged in whichever of its two triples violates them less, :func:`limit_angles`);
    * smoothness: 3D joint accelerations (their ``E_acc``), and in the physics stage the change
      of the root wrench the motion needs from frame to frame (the centre of mass's jerk) and a
      robust prior on the centre of mass's acceleration (the net external force minus the
