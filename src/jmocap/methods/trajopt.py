@@ -470,10 +470,10 @@ def limit_angles(model: Model, h: Array, config: TrajOptConfig) -> tuple[Array, 
     ``u, v, w`` and ``(a + pi, pi - b, c + pi)`` (mod 2 pi) are the same rotation
     (``R_u(pi) R_v(pi - b) R_w(pi) = R_v(b)``), so with ``config.limit_branches`` each ball
     joint (:func:`ball_triples`) is judged in the triple, each angle taken within pi of 0,
-    that violates its limits less (the
-    choice held by a gradient stop; the current one on a tie). A pose its limits allow in
-    either triple is then allowed, and a fit started in TPNet's triple can reach the other (a
-    raised arm: docs/method.md, stop 58). Without it, the angles as they are."""
+    that violates its limits less (the choice held by a gradient stop; the current one on a
+    tie). A pose its limits allow in either triple is then allowed, and a fit started in
+    TPNet's triple can reach the other (a raised arm: docs/method.md, stop 58). Without it,
+    the angles as they are."""
     sign = jnp.ones_like(h)
     tri = ball_triples(model)
     if not config.limit_branches or tri.size == 0:
