@@ -142,6 +142,9 @@ class TrajOptConfig(KinematicConfig):
     # (TPNet's lean kept); "tpnet": not turned (stops 41-56)
     prior_rotation: str = static("full")
     w_limits: float = 10.0
+    # the per-frame fit run a second time from TPNet's pose with the arms hanging (ARMS_DOWN_DEG),
+    # each frame keeping the start whose fit scores lower (stop 58: TPNet's shoulder angles)
+    arm_restart: bool = static(True)
     limit_branches: bool = static(True)  # a ball joint's limits judge the better of its two Euler triples (limit_angles)
     limit_sigma_rad: float = 0.05
     # the per-frame fit's prior on the root's camera depth (log depth) towards the clip's depth
@@ -1011,6 +1014,39 @@ def robust_height(h: Array, config: TrajOptConfig) -> tuple[Array, Array]:
     return a * c * h / den, a * c**3 / den**3
 
 
+#: the per-frame fit's second start for the arms (``arm_restart``; degrees, jmocap's humanoid): hanging
+#: at the sides, the upper arms turned about the shoulders' x axes and the elbows bent a little, the
+#: mean shoulder and elbow angles of the walk of ``data/val`` (clip 0)
+ARMS_DOWN_DEG = {"left_shoulder_x": -77.0, "left_shoulder_z": 0.0, "left_shoulder_y": 0.0, "left_elbow_z": -11.0,
+                 "right_shoulder_x": 77.0, "right_shoulder_z": 0.0, "right_shoulder_y": 0.0, "right_elbow_z": 11.0}
+
+
+def arms_down(model: Model, q: Array) -> Array | None:
+    """``q`` (..., nq) with the arms of :data:`ARMS_DOWN_DEG`, or None for a character without
+    those joints (static: read from the MuJoCo model at trace time)."""
+    mj = model.mj
+    names = {mj.joint(j).name: int(mj.jnt_qposadr[j]) for j in range(mj.njnt)}
+    if not all(n in names for n in ARMS_DOWN_DEG):
+        return None
+    adr = np.asarray([names[n] for n in ARMS_DOWN_DEG])
+    return q.at[..., adr].set(jnp.deg2rad(jnp.asarray(list(ARMS_DOWN_DEG.values()), q.dtype)))
+
+
+def frame_objective(model: Model, q: Array, prob: Problem, config: TrajOptConfig, depth: Array | None) -> Array:
+    """The per-frame fit's objective (T,) at its last robust scale (``config.gm_scale``): what
+    :func:`per_frame_fit` lowers, frame by frame, to compare two of its fits."""
+    def one(qt, prior, kp, cf, unit, E, dz, lab):
+        cam = Camera(prob.intrinsics, jnp.zeros(2, q.dtype), E)
+        uv, _, other, _ = _frame_residuals(model, qt, prior, cam, config, dz, lab, prob.scene)
+        r2 = jnp.sum((uv - kp) ** 2, -1) / unit**2
+        return config.w_reproj * jnp.sum(cf * geman_mcclure(r2, config.gm_scale)) + jnp.sum(other**2)
+
+    units = jnp.broadcast_to(prob.unit_px, q.shape[:1])
+    contacts = prob.contacts if config.frame_contacts else None
+    return jax.vmap(one, in_axes=(0, 0, 0, 0, 0, 0, None if depth is None else 0, None if contacts is None else 0))(
+        q, prob.prior_rr, prob.keypoints[..., :2], prob.keypoints[..., 2], units, prob.extrinsics, depth, contacts)
+
+
 def per_frame_fit(model: Model, q: Array, prob: Problem, config: TrajOptConfig, iterations: int,
                   gm_start, gm_end, depth: Array | None = None, contacts: Array | None = None,
                   tile: int = 0) -> Array:
@@ -1441,9 +1477,16 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     # without the floor)
     per_frame = config.replace(w_accel=0.0, w_contact_vel=0.0)
     f0 = lambda x, pr: objective(model, x, pr, per_frame, physics=False, heights=False)  # noqa: E731
+    dtrack = depth_track(q_init, prob, config)
     q1 = per_frame_fit(model, q_init, prob, per_frame, config.frame_iterations, config.gm_scale_initial,
-                       config.gm_scale, depth_track(q_init, prob, config),
+                       config.gm_scale, dtrack,
                        prob.contacts if config.frame_contacts else None, tile=config.frame_tile)
+    if config.arm_restart and arms_down(model, q_init) is not None:
+        q1b = per_frame_fit(model, arms_down(model, q_init), prob, per_frame, config.frame_iterations,
+                            config.gm_scale_initial, config.gm_scale, dtrack,
+                            prob.contacts if config.frame_contacts else None, tile=config.frame_tile)
+        better = frame_objective(model, q1b, prob, per_frame, dtrack) < frame_objective(model, q1, prob, per_frame, dtrack)
+        q1 = jnp.where(better[:, None], q1b, q1)
     before = f0(x0, prob)
     q1 = continuous_hinges(model, q1, config)
     x1, base = from_q(model, q1)
@@ -1651,22 +1694,26 @@ register_variant(Variant("trajopt_voted_contacts", "trajopt", {"contact_source":
 register_variant(Variant("trajopt_diagonal", "trajopt",
                          {"precondition": "diagonal", "kinematic_iterations": 60, "physics_iterations": 80,
                           "w_accel_kinematic": -1.0, "w_stay": 0.2, "touch_in_flight": True,
-                          "prior_rotation": "tpnet", "w_pose": 2.0, "limit_branches": False},
+                          "prior_rotation": "tpnet", "w_pose": 2.0, "limit_branches": False, "arm_restart": False},
                          "trajopt as before stop 55: L-BFGS with the diagonal preconditioner, 60 + 80 iterations, "
                          "one acceleration weight for both stages, w_stay 0.2, the prior on TPNet's orientation "
-                         "with w_pose 2, joint limits on the Euler angles as written (ablation of the banded "
-                         "Gauss-Newton preconditioner)"))
+                         "with w_pose 2, joint limits on the Euler angles as written, one start of the per-frame fit "
+                         "(ablation of the banded Gauss-Newton preconditioner)"))
 register_variant(Variant("trajopt_touch_in_flight", "trajopt", {"touch_in_flight": True},
                          "trajopt with a sole point near the floor allowed to carry force even in a frame the "
                          "contact labels call a flight, as before stop 56 (ablation)"))
 register_variant(Variant("trajopt_tpnet_orientation", "trajopt",
-                         {"prior_rotation": "tpnet", "w_pose": 2.0, "limit_branches": False},
+                         {"prior_rotation": "tpnet", "w_pose": 2.0, "limit_branches": False, "arm_restart": False},
                          "trajopt with the pose prior on TPNet's orientation of the body as well as its "
-                         "articulation, w_pose 2, joint limits on the Euler angles as written: stop 56's "
+                         "articulation, w_pose 2, joint limits on the Euler angles as written, one start: stop 56's "
                          "configuration (ablation of prior_rotation)"))
-register_variant(Variant("trajopt_written_triples", "trajopt", {"limit_branches": False},
+register_variant(Variant("trajopt_written_triples", "trajopt", {"limit_branches": False, "arm_restart": False},
                          "trajopt with each ball joint's limits on its three Euler angles as written, not on the "
-                         "better of its two triples: stop 57's configuration (ablation of limit_branches)"))
+                         "better of its two triples, and one start of the per-frame fit: stop 57's configuration "
+                         "(ablation of limit_branches)"))
+register_variant(Variant("trajopt_one_start", "trajopt", {"arm_restart": False},
+                         "trajopt with the per-frame fit started from TPNet's pose only, not also with the arms "
+                         "hanging (ablation of arm_restart)"))
 register_variant(Variant("trajopt_no_scene", "trajopt", {"use_scene": False},
                          "trajopt on the floor z = 0 whatever terrain the clip carries (ablation of the "
                          "interaction term, issue 21)"))
