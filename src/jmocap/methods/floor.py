@@ -266,9 +266,11 @@ def fitted_frames(model: Model, tp: S.TargetPose, inputs: ClipInputs, config: An
     # The floor is read off the fitted bodies' stance relative to the camera, and in this fit
     # nothing else holds it (no floor, contact or smoothness term; the world's vertical is the
     # default camera's guess): the prior keeps TPNet's orientation of the body and the weight it
-    # was measured with (trajopt's own fit turns the prior and weighs it 4 since stop 57).
+    # was measured with (trajopt's own fit turns the prior and weighs it 4 since stop 57), and the
+    # limits on the Euler angles as written (trajopt judges either triple since stop 58; not
+    # measured here).
     no_floor = config.replace(w_floor=0.0, w_accel=0.0, w_contact_vel=0.0, prior_rotation="tpnet",
-                              w_pose=FIT_W_POSE)
+                              w_pose=FIT_W_POSE, limit_branches=False)
     prob = TO.problem(model, inputs, q_hat, jnp.zeros(tp.contact_logits.shape, dtype), no_floor)
     q1 = TO.per_frame_fit(model, q_hat, prob, no_floor, config.frame_iterations, config.gm_scale_initial,
                           config.gm_scale, TO.depth_track(q_hat, prob, no_floor), None, tile=config.frame_tile)

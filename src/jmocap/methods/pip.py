@@ -351,9 +351,12 @@ def reference_poses(model: Model, inputs: ClipInputs, tp, prob: Array, config: P
         from jmocap.methods import trajopt as TO
 
         # the prior on TPNet's orientation too (trajopt turns it to the fit's since stop 57; pip's
-        # reference was not measured that way)
+        # reference was not measured that way), and the limits on the Euler angles as written:
+        # trajopt's judged triples (stop 58) leave neighbouring frames of a per-frame fit in
+        # different triples, which the smoothing and the tracker's PD would read as 180-degree
+        # jumps (the demo's run diverged)
         tcfg = TO.TrajOptConfig(layout=config.layout, nets=config.nets, w_accel=0.0, w_contact_vel=0.0,
-                                w_pose=config.fit_w_pose, prior_rotation="tpnet")
+                                w_pose=config.fit_w_pose, prior_rotation="tpnet", limit_branches=False)
         prob_t = TO.problem(model, inputs, tp.q_hat, prob, tcfg)
         # the image scale of the robust reprojection: per frame, over it and the 12 frames
         # before it (trajopt uses the whole clip's; a chunk must see what the whole clip sees)
