@@ -467,6 +467,16 @@ def ball_triples(model: Model) -> np.ndarray:
     return np.asarray(out, int).reshape(-1, 3)
 
 
+def _wrap(x: Array) -> Array:
+    """Angles taken within pi of 0."""
+    return x - 2 * jnp.pi * jnp.round(x / (2 * jnp.pi))
+
+
+def _other_triple(a: Array) -> Array:
+    """A ball joint's other Euler triple (..., 3) of the same rotation: ``(a + pi, pi - b, c + pi)``."""
+    return jnp.stack([a[..., 0] + jnp.pi, jnp.pi - a[..., 1], a[..., 2] + jnp.pi], -1)
+
+
 def limit_angles(model: Model, h: Array, config: TrajOptConfig) -> tuple[Array, Array]:
     """The hinge angles (..., H) the joint limits judge, and the derivative (..., H) (+-1) of each
     in the hinge's own angle. A ball joint's Euler angles ``(a, b, c)`` about orthogonal axes
@@ -484,8 +494,7 @@ def limit_angles(model: Model, h: Array, config: TrajOptConfig) -> tuple[Array, 
     lo = jnp.asarray(model.q_lower, h.dtype)[model.topo.hinge_qadr][tri]
     hi = jnp.asarray(model.q_upper, h.dtype)[model.topo.hinge_qadr][tri]
     a = h[..., tri]  # (..., K, 3)
-    other = jnp.stack([a[..., 0] + jnp.pi, jnp.pi - a[..., 1], a[..., 2] + jnp.pi], -1)
-    a, other = (x - 2 * jnp.pi * jnp.round(x / (2 * jnp.pi)) for x in (a, other))  # within pi of 0
+    a, other = _wrap(a), _wrap(_other_triple(a))
 
     def violation(x):
         return jnp.sum(jax.nn.relu(lo - x) ** 2 + jax.nn.relu(x - hi) ** 2, -1)
@@ -512,13 +521,8 @@ def continuous_hinges(model: Model, q: Array, config: TrajOptConfig) -> Array:
     a = q[:, cols]  # (T, K, 3)
     first = limit_angles(model, q[0, hq], config)[0][tri]
 
-    def wrap(x):
-        return x - 2 * jnp.pi * jnp.round(x / (2 * jnp.pi))
-
     def step(prev, x):
-        other = jnp.stack([x[..., 0] + jnp.pi, jnp.pi - x[..., 1], x[..., 2] + jnp.pi], -1)
-        near = lambda y: prev + wrap(y - prev)  # noqa: E731
-        x, other = near(x), near(other)
+        x, other = prev + _wrap(x - prev), prev + _wrap(_other_triple(x) - prev)
         use = jnp.sum((other - prev) ** 2, -1) < jnp.sum((x - prev) ** 2, -1)
         out = jnp.where(use[..., None], other, x)
         return out, out
@@ -1481,8 +1485,9 @@ def fit(model: Model, prob: Problem, q_init: Array, config: TrajOptConfig) -> Fi
     q1 = per_frame_fit(model, q_init, prob, per_frame, config.frame_iterations, config.gm_scale_initial,
                        config.gm_scale, dtrack,
                        prob.contacts if config.frame_contacts else None, tile=config.frame_tile)
-    if config.arm_restart and arms_down(model, q_init) is not None:
-        q1b = per_frame_fit(model, arms_down(model, q_init), prob, per_frame, config.frame_iterations,
+    q_arms = arms_down(model, q_init) if config.arm_restart else None
+    if q_arms is not None:
+        q1b = per_frame_fit(model, q_arms, prob, per_frame, config.frame_iterations,
                             config.gm_scale_initial, config.gm_scale, dtrack,
                             prob.contacts if config.frame_contacts else None, tile=config.frame_tile)
         better = frame_objective(model, q1b, prob, per_frame, dtrack) < frame_objective(model, q1, prob, per_frame, dtrack)
