@@ -44,7 +44,7 @@ step "built $(basename "$WHEEL")"
 import sys, zipfile
 names = set(zipfile.ZipFile(sys.argv[1]).namelist())
 need = ["jmocap/__main__.py", "jmocap/assets/mjcf/humanoid.xml", "jmocap/assets/default_params.msgpack",
-        "jmocap/assets/default_train_config.json", "jmocap/assets/contact_mlp.msgpack",
+        "jmocap/assets/default_train_config.json", "jmocap/assets/contact_mlp.msgpack", "jmocap/assets/support_tcn.msgpack",
         "jmocap/assets/imu_kinematics.msgpack", "jmocap/assets/imu_kinematics.json"]
 missing = [n for n in need if n not in names]
 demo = [n for n in names if n.startswith("jmocap/assets/demo/")]

@@ -361,14 +361,16 @@ def window_probabilities(params, inputs: ClipInputs, layout: str = "body25", mir
     of the MLP (docs/method.md, "Contact estimation"). With ``depth`` (T,), the person's depth
     in every frame's camera, each window is first seen from its target frame's camera
     (:func:`contact_features`' ``stabilise``): a moving camera's motion taken out."""
-    f = _features(params, inputs, layout, depth)
+    f = window_features(params, inputs, layout, depth)
     p = jax.nn.sigmoid(window_logits(params, f))
     if mirror:
         p = 0.5 * (p + flip_contacts(jax.nn.sigmoid(window_logits(params, flip_features(f)))))
     return p
 
 
-def _features(params, inputs: ClipInputs, layout: str, depth: Array | None) -> Array:
+def window_features(params, inputs: ClipInputs, layout: str = "body25", depth: Array | None = None) -> Array:
+    """The MLP's input (T, w x 39) of one clip (:func:`contact_features`), each window seen from
+    its target frame's camera where ``depth`` (T,) is given (:func:`window_probabilities`)."""
     stab = None if depth is None else (inputs.intrinsics, inputs.world_to_camera(), depth)
     return contact_features(inputs.keypoints, inputs.image_size, inputs.mask, layout, window_of(params), stab)
 
@@ -383,7 +385,7 @@ def estimate_contacts(params, inputs: ClipInputs, layout: str = "body25", mirror
     :func:`window_probabilities`. ``jax.jit`` / ``jax.vmap`` over clips apply (``layout`` and
     ``mirror`` static)."""
     if refiner is not None:
-        return refined_probabilities(params, refiner, _features(params, inputs, layout, depth), inputs.mask, mirror)
+        return refined_probabilities(params, refiner, window_features(params, inputs, layout, depth), inputs.mask, mirror)
     return vote(window_probabilities(params, inputs, layout, mirror, depth), inputs.mask)
 
 
