@@ -174,6 +174,14 @@ def test_centre_of_mass_prior_against_mujoco():
     c2 = 3.0**2  # Geman-McClure: c^2 r^2 / (c^2 + r^2)
     np.testing.assert_allclose(float(TO.com_accel_term(geo.dynamics, prob, config.replace(com_accel_robust=3.0))),
                                np.mean(c2 * r2 / (c2 + r2)), rtol=1e-4)
+    # centred on a learned support (config.support_prior "learned"): the vertical residual is the
+    # acceleration less (support - 1); centred on MuJoCo's own c''_z / g + 1 it is the O(dt) error
+    support = np.ones(T)
+    support[1:-1] = 1.0 + ref[:, 2]
+    on = TO.com_accel_residual(geo.dynamics, prob.replace(support=jnp.asarray(support, jnp.float32)))
+    np.testing.assert_allclose(np.asarray(on)[:, :2], accel[:, :2], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(on)[1:-1, 2], accel[1:-1, 2] - ref[:, 2], atol=1e-6)
+    assert np.abs(np.asarray(on)[1:-1, 2]).mean() < 0.02 < np.abs(accel[1:-1, 2]).mean()
 
 
 def _problem(model, clip, start, frames, config, dtype=jnp.float32):
@@ -201,8 +209,8 @@ def test_objective_gradient_matches_finite_differences():
         start = _quiet_window(clip, 8)
         prob, q, _ = _problem(model64, clip, start, 8, config, jnp.float64)
         x, base = TO.from_q(model64, q)
-        prob = prob.replace(base_quat=base)
         rng = np.random.default_rng(1)
+        prob = prob.replace(base_quat=base, support=jnp.asarray(1.0 + 0.3 * rng.normal(size=8)))  # a learned support
         x = jax.tree.map(lambda a: a + 0.005 * rng.normal(size=a.shape), x)  # off the optimum
         f = jax.jit(lambda x: TO.objective(model64, x, prob, config, physics=True))
         g = jax.jit(jax.grad(lambda x: TO.objective(model64, x, prob, config, physics=True)))(x)

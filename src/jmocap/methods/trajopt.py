@@ -126,6 +126,10 @@ class TrajOptConfig(KinematicConfig):
     # on the floor z = 0 whatever the clip carries (the ablation trajopt_no_scene)
     use_scene: bool = static(True)
     nnls_iterations: int = static(60)  # FISTA iterations of the per-frame force problem
+    # the centre of the centre-of-mass prior (w_com_accel): "learned", the net vertical force
+    # jmocap.methods.support estimates from the 2D keypoints, or "standing", one body weight
+    # straight up in every frame (until stop 59)
+    support_prior: str = static("learned")
     # --- 2D evidence ---
     w_reproj: float = 1.0
     gm_scale: float = 4.0  # Geman-McClure scale, % of person height in the image
@@ -179,7 +183,9 @@ class TrajOptConfig(KinematicConfig):
     dynamics_sigma: float = 0.05  # body weights (force), body weight x 1 m (torque)
     w_wrench_rate: float = 10.0  # smooth external forces (the root wrench the motion needs)
     wrench_rate_sigma: float = 0.3  # body weights per frame
-    w_com_accel: float = 100.0  # prior on the external force: the centre of mass accelerates little
+    # prior on the external force: the centre of mass accelerates as the learned support says
+    # (support_prior; 100 until stop 59, when it centred on one body weight)
+    w_com_accel: float = 300.0
     com_accel_sigma: float = 0.15  # of |c''| / g, i.e. of the net external force minus the weight, body weights
     com_accel_robust: float = 3.0  # Geman-McClure scale of that residual, in com_accel_sigma (0: quadratic)
     w_stay: float = 30.0  # pull of the physics stage towards the kinematic fit (3 before stop 56)
@@ -272,6 +278,8 @@ class Problem:
     scene: Scene | None = None  # the terrain (jmocap.scene); None or no boxes: the floor z = 0
     supported: Array | None = None  # (T,) the estimator labelled some site (before the outlier
     # test); None: any of ``contacts``
+    support: Array | None = None  # (T,) net vertical force the centre-of-mass prior centres on,
+    # body weights (config.support_prior "learned"); None: one body weight
 
 
 def is_flat(scene: Scene | None) -> bool:
@@ -776,13 +784,21 @@ def wrench_rate_term(fd: FrameDynamics, prob: Problem, config: TrajOptConfig) ->
     return _frames_mean(d, m[1:] * m[:-1])
 
 
+def com_accel_residual(fd: FrameDynamics, prob: Problem) -> Array:
+    """(T, 3) net external force the motion needs minus the prior's centre, body weights: one
+    body weight straight up, or where ``prob.support`` is given (the learned support prior,
+    :mod:`jmocap.methods.support`), that vertical force."""
+    up = 1.0 if prob.support is None else prob.support
+    return fd.need[:, :3].at[:, 2].add(-up)
+
+
 def com_accel_term(fd: FrameDynamics, prob: Problem, config: TrajOptConfig) -> Array:
     """Prior on the net external force the motion needs: ``need[:3] - (0, 0, 1) = c'' / g`` (body
     weights), the centre of mass's acceleration. The 2D evidence fixes the centre of mass's
     path only to centimetres, and finite differences of that at 30 fps are accelerations of
     metres per second squared, which the full-body dynamics can always balance (limb motion
     absorbs the torque): without a prior the estimated horizontal forces are noise."""
-    f = fd.need[:, :3].at[:, 2].add(-1.0)
+    f = com_accel_residual(fd, prob)
     r2 = jnp.sum(f**2, -1) / config.com_accel_sigma**2
     r2 = jnp.where(config.com_accel_robust > 0, geman_mcclure(r2, config.com_accel_robust), r2)
     return _frames_mean(r2, prob.mask.astype(r2.dtype))
@@ -1356,7 +1372,7 @@ def physics_curvature(model: Model, q: Array, prob: Problem, config: TrajOptConf
     wd = 2.0 * config.w_dynamics / n1 * m[1:-1] / config.dynamics_sigma**2
     blocks = blocks + _stencil_blocks(Jr, wd, T, 4, 0)
     # the centre-of-mass prior (robust: its IRLS weight)
-    f = fd.need[:, :3].at[:, 2].add(-1.0)
+    f = com_accel_residual(fd, prob)
     s2 = jnp.sum(f**2, -1) / config.com_accel_sigma**2
     c2 = config.com_accel_robust**2
     rho1 = jnp.where(config.com_accel_robust > 0, c2 * c2 / (c2 + s2) ** 2, 1.0)
@@ -1409,6 +1425,20 @@ def contact_labels(params: dict, inputs: ClipInputs, tpnet_prob: Array, config: 
         refiner = CE.refiner_params(params) if config.contact_source == "refined" else None
         return CE.estimate_contacts(CE.contact_params(params), inputs, config.layout, depth=depth, refiner=refiner)
     raise ValueError(f"unknown contact_source {config.contact_source!r} (refined, mlp, tpnet)")
+
+
+def support_prior(params: dict, inputs: ClipInputs, config: TrajOptConfig, depth: Array | None = None) -> Array | None:
+    """(T,) the net vertical force the centre-of-mass prior centres on (body weights), or None
+    for one body weight (``config.support_prior``); ``depth`` as for :func:`contact_labels`."""
+    if config.support_prior == "standing":
+        return None
+    if config.support_prior == "learned":
+        from jmocap.methods import contact_estimation as CE
+        from jmocap.methods import support as SP
+
+        return SP.support_force(CE.contact_params(params), SP.support_params(params), inputs, config.layout,
+                                depth=depth)
+    raise ValueError(f"unknown support_prior {config.support_prior!r} (learned, standing)")
 
 
 def problem(model: Model, inputs: ClipInputs, q_hat: Array, contacts: Array, config: TrajOptConfig) -> Problem:
@@ -1670,6 +1700,7 @@ def reconstruct(params: dict, model: Model, inputs: ClipInputs,
     mask = jnp.asarray(inputs.mask)
     prob_c = contact_labels(params, inputs, S.contact_probability(tp.contact_logits), config, tp.trans_cam[:, 2])
     prob = problem(model, inputs, tp.q_hat, prob_c, config)
+    prob = prob.replace(support=support_prior(params, inputs, config, tp.trans_cam[:, 2]))
     q0 = initial_trajectory(model, tp.q_hat, mask, prob.scene)
     out = fit_clip(model, prob, q0, config)
     qd, tau, grf, report = outputs(model, out.q, out.force, mask, inputs.fps, prob.scene)
@@ -1699,26 +1730,34 @@ register_variant(Variant("trajopt_voted_contacts", "trajopt", {"contact_source":
 register_variant(Variant("trajopt_diagonal", "trajopt",
                          {"precondition": "diagonal", "kinematic_iterations": 60, "physics_iterations": 80,
                           "w_accel_kinematic": -1.0, "w_stay": 0.2, "touch_in_flight": True,
-                          "prior_rotation": "tpnet", "w_pose": 2.0, "limit_branches": False, "arm_restart": False},
+                          "prior_rotation": "tpnet", "w_pose": 2.0, "limit_branches": False, "arm_restart": False,
+                          "support_prior": "standing", "w_com_accel": 100.0},
                          "trajopt as before stop 55: L-BFGS with the diagonal preconditioner, 60 + 80 iterations, "
                          "one acceleration weight for both stages, w_stay 0.2, the prior on TPNet's orientation "
-                         "with w_pose 2, joint limits on the Euler angles as written, one start of the per-frame fit "
-                         "(ablation of the banded Gauss-Newton preconditioner)"))
+                         "with w_pose 2, joint limits on the Euler angles as written, one start of the per-frame fit, "
+                         "the centre-of-mass prior on one body weight (ablation of the banded Gauss-Newton preconditioner)"))
 register_variant(Variant("trajopt_touch_in_flight", "trajopt", {"touch_in_flight": True},
                          "trajopt with a sole point near the floor allowed to carry force even in a frame the "
                          "contact labels call a flight, as before stop 56 (ablation)"))
 register_variant(Variant("trajopt_tpnet_orientation", "trajopt",
-                         {"prior_rotation": "tpnet", "w_pose": 2.0, "limit_branches": False, "arm_restart": False},
+                         {"prior_rotation": "tpnet", "w_pose": 2.0, "limit_branches": False, "arm_restart": False,
+                          "support_prior": "standing", "w_com_accel": 100.0},
                          "trajopt with the pose prior on TPNet's orientation of the body as well as its "
-                         "articulation, w_pose 2, joint limits on the Euler angles as written, one start: stop 56's "
-                         "configuration (ablation of prior_rotation)"))
-register_variant(Variant("trajopt_written_triples", "trajopt", {"limit_branches": False, "arm_restart": False},
+                         "articulation, w_pose 2, joint limits on the Euler angles as written, one start, the "
+                         "centre-of-mass prior on one body weight: stop 56's configuration (ablation of prior_rotation)"))
+register_variant(Variant("trajopt_written_triples", "trajopt",
+                         {"limit_branches": False, "arm_restart": False, "support_prior": "standing", "w_com_accel": 100.0},
                          "trajopt with each ball joint's limits on its three Euler angles as written, not on the "
-                         "better of its two triples, and one start of the per-frame fit: stop 57's configuration "
+                         "better of its two triples, one start of the per-frame fit and the centre-of-mass prior on one body weight: "
+                         "stop 57's configuration "
                          "(ablation of limit_branches)"))
 register_variant(Variant("trajopt_one_start", "trajopt", {"arm_restart": False},
                          "trajopt with the per-frame fit started from TPNet's pose only, not also with the arms "
                          "hanging (ablation of arm_restart)"))
+register_variant(Variant("trajopt_standing_support", "trajopt", {"support_prior": "standing", "w_com_accel": 100.0},
+                         "trajopt with the centre-of-mass prior centred on one body weight in every frame, not on "
+                         "the learned support, at its weight then (w_com_accel 100): stop 58's configuration "
+                         "(ablation of support_prior)"))
 register_variant(Variant("trajopt_no_scene", "trajopt", {"use_scene": False},
                          "trajopt on the floor z = 0 whatever terrain the clip carries (ablation of the "
                          "interaction term, issue 21)"))
