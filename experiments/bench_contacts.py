@@ -1,10 +1,12 @@
-"""Speed of contact estimation: Rempe's voted MLP against jmocap's temporal refiner over it.
+"""Speed of contact estimation: Rempe's voted MLP against jmocap's temporal refiner over it, and
+the learned support (the net vertical force, :mod:`jmocap.methods.support`, the same network over
+the same inputs).
 
     .venv/bin/python experiments/bench_contacts.py [--archive data/heldout] [--frames 300] [--batches 1 64]
 
 Both competitors run in one process on the same clips (the archive's first clips, each cut or
 padded to ``--frames``), ``jax.jit(jax.vmap(...))`` over a batch, compile timed apart; prints
-milliseconds per clip and the refiner's cost as a ratio of the voted MLP's (docs/performance.md,
+milliseconds per clip and each cost as a ratio of the voted MLP's (docs/performance.md,
 "Contact estimation").
 """
 
@@ -28,8 +30,9 @@ def main(argv=None) -> int:
     from jmocap.data.archive import Archive
     from jmocap.inputs import ClipInputs
     from jmocap.methods import contact_estimation as ce
+    from jmocap.methods import support as sp
 
-    mlp, refiner = ce.default_contact_params(), ce.default_refiner_params()
+    mlp, refiner, support = ce.default_contact_params(), ce.default_refiner_params(), sp.default_support_params()
     with Archive(args.archive) as a:
         names = a.names()
         clips = [a.load(n) for n in names[: max(args.batches)]]
@@ -38,6 +41,7 @@ def main(argv=None) -> int:
     competitors = {
         "voted MLP (Rempe)": jax.jit(jax.vmap(lambda inp: ce.estimate_contacts(mlp, inp))),
         "refined (MLP + ContactTCN)": jax.jit(jax.vmap(lambda inp: ce.estimate_contacts(mlp, inp, refiner=refiner))),
+        "support (MLP + one-output ContactTCN)": jax.jit(jax.vmap(lambda inp: sp.support_force(mlp, support, inp))),
     }
     print(f"{args.frames}-frame clips of {args.archive}; ms per clip (best of {args.repeats}), compile s")
     print("| batch | competitor | compile s | ms / clip | x voted |")

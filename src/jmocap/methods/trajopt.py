@@ -16,9 +16,10 @@ character (its bone lengths, joint limits and mass distribution), in two stages:
      angles judged in whichever of its two triples violates them less, :func:`limit_angles`);
    * smoothness: 3D joint accelerations (their ``E_acc``), and in the physics stage the change
      of the root wrench the motion needs from frame to frame (the centre of mass's jerk) and a
-     robust prior on the centre of mass's acceleration (the net external force minus the
-     weight: the 2D evidence fixes the path only to centimetres, whose 30 fps second
-     differences are noise of metres per second squared);
+     robust prior on the net external force, centred on the net vertical force a network
+     estimates from the 2D keypoints (:mod:`jmocap.methods.support`; ``support_prior``): the 2D
+     evidence fixes the centre of mass's path only to centimetres, whose 30 fps second
+     differences are noise of metres per second squared;
    * contacts (their ``E_cont``, ``E_floor``): a foot point labelled in contact stays still and
      its sole lies on the floor; no sole point is below the floor, labelled or not.
 
@@ -793,10 +794,11 @@ def com_accel_residual(fd: FrameDynamics, prob: Problem) -> Array:
 
 
 def com_accel_term(fd: FrameDynamics, prob: Problem, config: TrajOptConfig) -> Array:
-    """Prior on the net external force the motion needs: ``need[:3] - (0, 0, 1) = c'' / g`` (body
-    weights), the centre of mass's acceleration. The 2D evidence fixes the centre of mass's
-    path only to centimetres, and finite differences of that at 30 fps are accelerations of
-    metres per second squared, which the full-body dynamics can always balance (limb motion
+    """Prior on the net external force the motion needs (body weights): ``need[:3] - (0, 0, s)``
+    with ``s`` the learned support (:func:`com_accel_residual`), or ``need[:3] - (0, 0, 1) = c''
+    / g``, the centre of mass's acceleration, without it. The 2D evidence fixes the centre of
+    mass's path only to centimetres, and finite differences of that at 30 fps are accelerations
+    of metres per second squared, which the full-body dynamics can always balance (limb motion
     absorbs the torque): without a prior the estimated horizontal forces are noise."""
     f = com_accel_residual(fd, prob)
     r2 = jnp.sum(f**2, -1) / config.com_accel_sigma**2
