@@ -121,9 +121,7 @@ def make_steps(lr_schedule, weight_decay: float, flight_weight: float = 1.0):
 def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
     import jax
     import optax
-    from flax import serialization
 
-    from jmocap.io import atomic_write
     from jmocap.methods import contact_estimation as ce
 
     steps_per_epoch = max(1, len(Xtr) // args.batch)
@@ -132,34 +130,18 @@ def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
     p = ce.init_refiner_params(jax.random.PRNGKey(args.seed), Xtr.shape[-1], args.width, args.blocks)
     state = {"params": p, "opt": tx.init(p), "epoch": 0, "best_val": float("inf"), "best_epoch": -1,
              "bad_epochs": 0, "best": p, "done": False}
-    ckpt = run / "checkpoint.msgpack"
-    if ckpt.exists():
-        state = serialization.from_bytes(state, ckpt.read_bytes())
-        state["done"] = bool(state["done"])
-        log(f"resumed {ckpt} at epoch {int(state['epoch'])} (best val {float(state['best_val']):.4f})")
-    key = jax.random.PRNGKey(args.seed + 1)
-    with open(run / "log.jsonl", "a") as logf:
-        while not state["done"] and int(state["epoch"]) < args.max_epochs:
-            ep = int(state["epoch"])
-            t0 = time.time()
-            order = np.random.default_rng([args.seed, ep]).permutation(len(Xtr))
-            p, opt, losses = state["params"], state["opt"], []
-            for s in range(steps_per_epoch):
-                idx = np.sort(order[s * args.batch:(s + 1) * args.batch])
-                p, opt, loss = train_step(p, opt, Xtr[idx], Ytr[idx], Mtr[idx], jax.random.fold_in(key, ep * 100003 + s))
-                losses.append(loss)
-            train_loss = float(np.mean(jax.device_get(losses)))
-            val_loss, val_f1 = TC.evaluate_arrays(eval_batch, p, Xva, Yva, Mva, chunk=64)
-            state.update(params=p, opt=opt, epoch=ep + 1)
-            improved = TC.early_stop(state, val_loss, ep, args.patience, p)
-            rec = {"epoch": ep, "train_loss": train_loss, "val_loss": val_loss, "val_f1": val_f1,
-                   "best_epoch": int(state["best_epoch"]), "seconds": round(time.time() - t0, 2)}
-            logf.write(json.dumps(rec) + "\n")
-            logf.flush()
-            log(f"epoch {ep}: train {train_loss:.4f} val {val_loss:.4f} val F1 {val_f1:.2f} "
-                f"({rec['seconds']} s){' *' if improved else ''}")
-            atomic_write(ckpt, serialization.to_bytes(state))
-    return jax.device_get(state["best"]), int(state["best_epoch"]), int(state["epoch"])
+
+    def step(p, opt, idx, key):
+        return train_step(p, opt, Xtr[idx], Ytr[idx], Mtr[idx], key)
+
+    def record(train_loss, val_loss, val_f1):
+        return ({"train_loss": train_loss, "val_loss": val_loss, "val_f1": val_f1},
+                f"train {train_loss:.4f} val {val_loss:.4f} val F1 {val_f1:.2f}")
+
+    return TC.resumable_epochs(run, state, seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
+                               n_train=len(Xtr), batch=args.batch, step=step,
+                               validate=lambda p: TC.evaluate_arrays(eval_batch, p, Xva, Yva, Mva, chunk=64),
+                               record=record)
 
 
 def scores(pred: np.ndarray, gt: np.ndarray) -> dict:
@@ -213,15 +195,7 @@ def main(argv=None) -> int:
     run = ROOT / args.run
     run.mkdir(parents=True, exist_ok=True)
     t_start = time.time()
-    tr, va, used = [], [], []
-    for folder, n, seed, extended in ARCHIVES:
-        TC.refuse_heldout(ROOT / folder, seed)
-        TC.ensure_archive(ROOT / folder, n, seed, FRAMES, args.workers, extended)
-        clips = TC.load_clips(ROOT / folder, n)
-        a, b = TC.split(clips, args.val_fraction, seed)
-        tr, va = tr + a, va + b
-        used.append({"path": folder, "clips": n, "seed": seed, "extended": extended, "frames_per_clip": FRAMES,
-                     "frames": int(sum(c.num_frames for c in clips))})
+    tr, va, used = TC.split_archives(ARCHIVES, FRAMES, args.workers, args.val_fraction)
     t0 = time.time()
     Xtr, Ytr, Mtr = sequences(tr, flip=True)
     Xva, Yva, Mva = sequences(va, flip=False)
@@ -234,13 +208,7 @@ def main(argv=None) -> int:
     from jmocap.weights import save_params
 
     save_params(run / "contact_refiner.msgpack", best)
-    report = {"validation_split": compare(best, va)}
-    from jmocap.data.archive import Archive
-
-    for e in args.eval:
-        TC.refuse_heldout(ROOT / e, json.loads((ROOT / e / "archive.json").read_text()).get("seed"))
-        with Archive(ROOT / e) as arch:
-            report[e] = compare(best, [arch.load(n) for n in arch.names()])
+    report = TC.report_archives(compare, best, va, args.eval)
     for k, v in report.items():
         log(f"{k}: voted MLP {v['voted_mlp']}  refined {v['refined']}")
     summary = {
@@ -254,12 +222,7 @@ def main(argv=None) -> int:
     }
     (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     if args.ship:
-        import jax
-
-        asset = ROOT / "src/jmocap/assets/contact_refiner.msgpack"
-        save_params(asset, jax.tree.map(lambda x: np.asarray(x, np.float16), best))
-        (ROOT / "src/jmocap/assets/contact_refiner.json").write_text(json.dumps(summary, indent=2) + "\n")
-        log(f"shipped {asset} ({asset.stat().st_size / 1e6:.2f} MB)")
+        TC.ship_half(best, "contact_refiner", summary)
     log(f"done in {time.time() - t_start:.0f} s this call")
     return 0
 

@@ -257,6 +257,93 @@ def early_stop(state: dict, val_loss: float, epoch: int, patience: int, weights)
     return improved
 
 
+def resumable_epochs(run: Path, state: dict, *, seed: int, max_epochs: int, patience: int, n_train: int,
+                     batch: int, step, validate, record):
+    """The epoch loop of the temporal networks' recipes (``train_contact_refiner.py``,
+    ``train_support.py``): resumable from ``run/checkpoint.msgpack`` (written atomically after
+    every epoch; ``state`` is the fresh state's template: params, opt, epoch, best_val,
+    best_epoch, bad_epochs, best, done), one permutation of the ``n_train`` sequences per epoch
+    (seeded by ``(seed, epoch)``) cut into sorted batches of ``batch``, early stopping on the
+    validation loss (:func:`early_stop`), one record per epoch in ``run/log.jsonl``.
+
+    ``step(params, opt, idx, key) -> (params, opt, loss)``; ``validate(params) -> (val_loss,
+    extra)``; ``record(train_loss, val_loss, extra) -> (fields, text)``: the epoch's log record
+    fields and its printed line. Returns the best weights, their epoch and the epochs run."""
+    import jax
+    from flax import serialization
+
+    from jmocap.io import atomic_write
+
+    ckpt = run / "checkpoint.msgpack"
+    if ckpt.exists():
+        state = serialization.from_bytes(state, ckpt.read_bytes())
+        state["done"] = bool(state["done"])
+        log(f"resumed {ckpt} at epoch {int(state['epoch'])} (best val {float(state['best_val']):.4f})")
+    key = jax.random.PRNGKey(seed + 1)
+    steps_per_epoch = max(1, n_train // batch)
+    with open(run / "log.jsonl", "a") as logf:
+        while not state["done"] and int(state["epoch"]) < max_epochs:
+            ep = int(state["epoch"])
+            t0 = time.time()
+            order = np.random.default_rng([seed, ep]).permutation(n_train)
+            p, opt, losses = state["params"], state["opt"], []
+            for s in range(steps_per_epoch):
+                idx = np.sort(order[s * batch:(s + 1) * batch])
+                p, opt, loss = step(p, opt, idx, jax.random.fold_in(key, ep * 100003 + s))
+                losses.append(loss)
+            train_loss = float(np.mean(jax.device_get(losses)))
+            val_loss, extra = validate(p)
+            state.update(params=p, opt=opt, epoch=ep + 1)
+            improved = early_stop(state, val_loss, ep, patience, p)
+            fields, text = record(train_loss, val_loss, extra)
+            rec = {"epoch": ep, **fields, "best_epoch": int(state["best_epoch"]), "seconds": round(time.time() - t0, 2)}
+            logf.write(json.dumps(rec) + "\n")
+            logf.flush()
+            log(f"epoch {ep}: {text} ({rec['seconds']} s){' *' if improved else ''}")
+            atomic_write(ckpt, serialization.to_bytes(state))
+    return jax.device_get(state["best"]), int(state["best_epoch"]), int(state["epoch"])
+
+
+def split_archives(archives, frames: str, workers: int, val_fraction: float):
+    """The temporal networks' training archives (``(folder, clips, seed, extended)`` each, made
+    when missing, never a held-out one), each split into training and validation clips:
+    ``(train, val, used)`` with ``used`` the archives' record for the run's summary."""
+    tr, va, used = [], [], []
+    for folder, n, seed, extended in archives:
+        refuse_heldout(ROOT / folder, seed)
+        ensure_archive(ROOT / folder, n, seed, frames, workers, extended)
+        clips = load_clips(ROOT / folder, n)
+        a, b = split(clips, val_fraction, seed)
+        tr, va = tr + a, va + b
+        used.append({"path": folder, "clips": n, "seed": seed, "extended": extended, "frames_per_clip": frames,
+                     "frames": int(sum(c.num_frames for c in clips))})
+    return tr, va, used
+
+
+def report_archives(compare, weights, val_clips, archives) -> dict:
+    """``compare(weights, clips)`` on the validation split and on every archive of ``archives``
+    (validation archives; a held-out one is refused)."""
+    from jmocap.data.archive import Archive
+
+    report = {"validation_split": compare(weights, val_clips)}
+    for e in archives:
+        refuse_heldout(ROOT / e, json.loads((ROOT / e / "archive.json").read_text()).get("seed"))
+        with Archive(ROOT / e) as arch:
+            report[e] = compare(weights, [arch.load(n) for n in arch.names()])
+    return report
+
+
+def ship_half(weights, name: str, summary: dict) -> None:
+    """Copy ``weights`` into the package as ``src/jmocap/assets/NAME.msgpack`` in float16, with
+    the run's summary beside it (``NAME.json``)."""
+    from jmocap.weights import save_params
+
+    asset = ROOT / "src/jmocap/assets" / f"{name}.msgpack"
+    save_params(asset, _half_raw(weights))
+    asset.with_suffix(".json").write_text(json.dumps(summary, indent=2) + "\n")
+    log(f"shipped {asset} ({asset.stat().st_size / 1e6:.2f} MB)")
+
+
 def train(args, Xtr, Ytr, Mtr, Xva, Yva, Mva, run: Path):
     import jax
     from flax import serialization
