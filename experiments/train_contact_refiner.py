@@ -175,22 +175,9 @@ def compare(refiner, clips) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--run", default="runs/contact_refiner")
-    ap.add_argument("--workers", type=int, default=2, help="generation processes")
-    ap.add_argument("--val-fraction", type=float, default=0.15)
-    ap.add_argument("--width", type=int, default=64)
-    ap.add_argument("--blocks", type=int, default=5, help="dilated convolutions (dilations 1, 2, 4, ...)")
-    ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--weight-decay", type=float, default=1e-4)
-    ap.add_argument("--batch", type=int, default=16)
+    TC.temporal_arguments(ap, "runs/contact_refiner", "data/val data/val_walk data/val_flight")
     ap.add_argument("--flight-weight", type=float, default=1.0,
                     help="loss weight of flight frames (no point in contact) against 1 for the others")
-    ap.add_argument("--max-epochs", type=int, default=60)
-    ap.add_argument("--patience", type=int, default=8)
-    ap.add_argument("--seed", type=int, default=17)
-    ap.add_argument("--eval", nargs="*", default=[], metavar="ARCHIVE",
-                    help="validation archives to report at the end (e.g. data/val data/val_walk data/val_flight)")
-    ap.add_argument("--ship", action="store_true", help="copy the weights into the package (float16)")
     args = ap.parse_args(argv)
     run = ROOT / args.run
     run.mkdir(parents=True, exist_ok=True)
@@ -211,15 +198,10 @@ def main(argv=None) -> int:
     report = TC.report_archives(compare, best, va, args.eval)
     for k, v in report.items():
         log(f"{k}: voted MLP {v['voted_mlp']}  refined {v['refined']}")
-    summary = {
-        "command": "python experiments/train_contact_refiner.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "archives": used, "contact_mlp": "src/jmocap/assets/contact_mlp.msgpack (shipped)",
-        "width": args.width, "blocks": args.blocks,
-        "hyper": {k: getattr(args, k) for k in ("lr", "weight_decay", "batch", "flight_weight", "max_epochs", "patience",
-                                                "val_fraction")},
-        "best_epoch": best_epoch, "epochs_run": epochs, "report": report,
-        "seconds": {"inputs": round(feat_s, 1), "train": round(train_s, 1), "total_this_call": round(time.time() - t_start, 1)},
-    }
+    seconds = {"inputs": round(feat_s, 1), "train": round(train_s, 1), "total_this_call": round(time.time() - t_start, 1)}
+    summary = TC.temporal_summary("train_contact_refiner.py", argv, args, used,
+                                 ("lr", "weight_decay", "batch", "flight_weight", "max_epochs", "patience", "val_fraction"),
+                                 best_epoch, epochs, report, seconds)
     (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     if args.ship:
         TC.ship_half(best, "contact_refiner", summary)

@@ -304,6 +304,38 @@ def resumable_epochs(run: Path, state: dict, *, seed: int, max_epochs: int, pati
     return jax.device_get(state["best"]), int(state["best_epoch"]), int(state["epoch"])
 
 
+def temporal_arguments(ap, run: str, eval_example: str):
+    """The options the temporal networks' recipes share (``train_contact_refiner.py``,
+    ``train_support.py``): run folder, generation workers, split, network size, optimiser,
+    early stopping, seed, validation archives and shipping."""
+    ap.add_argument("--run", default=run)
+    ap.add_argument("--workers", type=int, default=2, help="generation processes")
+    ap.add_argument("--val-fraction", type=float, default=0.15)
+    ap.add_argument("--width", type=int, default=64)
+    ap.add_argument("--blocks", type=int, default=5, help="dilated convolutions (dilations 1, 2, 4, ...)")
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--weight-decay", type=float, default=1e-4)
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--max-epochs", type=int, default=60)
+    ap.add_argument("--patience", type=int, default=8)
+    ap.add_argument("--seed", type=int, default=17)
+    ap.add_argument("--eval", nargs="*", default=[], metavar="ARCHIVE",
+                    help=f"validation archives to report at the end (e.g. {eval_example})")
+    ap.add_argument("--ship", action="store_true", help="copy the weights into the package (float16)")
+
+
+def temporal_summary(script: str, argv, args, used, hyper: tuple[str, ...], best_epoch: int, epochs: int,
+                     report: dict, seconds: dict) -> dict:
+    """The run's ``summary.json`` of a temporal network's recipe (the shipped asset's ``.json``)."""
+    return {
+        "command": f"python experiments/{script} " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "archives": used, "contact_mlp": "src/jmocap/assets/contact_mlp.msgpack (shipped)",
+        "width": args.width, "blocks": args.blocks,
+        "hyper": {k: getattr(args, k) for k in hyper},
+        "best_epoch": best_epoch, "epochs_run": epochs, "report": report, "seconds": seconds,
+    }
+
+
 def split_archives(archives, frames: str, workers: int, val_fraction: float):
     """The temporal networks' training archives (``(folder, clips, seed, extended)`` each, made
     when missing, never a held-out one), each split into training and validation clips:

@@ -164,20 +164,7 @@ def compare(variables, clips) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--run", default="runs/support")
-    ap.add_argument("--workers", type=int, default=2, help="generation processes")
-    ap.add_argument("--val-fraction", type=float, default=0.15)
-    ap.add_argument("--width", type=int, default=64)
-    ap.add_argument("--blocks", type=int, default=5, help="dilated convolutions (dilations 1, 2, 4, ...)")
-    ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--weight-decay", type=float, default=1e-4)
-    ap.add_argument("--batch", type=int, default=16)
-    ap.add_argument("--max-epochs", type=int, default=60)
-    ap.add_argument("--patience", type=int, default=8)
-    ap.add_argument("--seed", type=int, default=17)
-    ap.add_argument("--eval", nargs="*", default=[], metavar="ARCHIVE",
-                    help="validation archives to report at the end (e.g. data/val data/val_flight)")
-    ap.add_argument("--ship", action="store_true", help="copy the weights into the package (float16)")
+    TC.temporal_arguments(ap, "runs/support", "data/val data/val_flight")
     args = ap.parse_args(argv)
     run = ROOT / args.run
     run.mkdir(parents=True, exist_ok=True)
@@ -199,14 +186,10 @@ def main(argv=None) -> int:
     report = TC.report_archives(compare, best, va, args.eval)
     for k, v in report.items():
         log(f"{k}: {v}")
-    summary = {
-        "command": "python experiments/train_support.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "archives": used, "contact_mlp": "src/jmocap/assets/contact_mlp.msgpack (shipped)",
-        "width": args.width, "blocks": args.blocks,
-        "hyper": {k: getattr(args, k) for k in ("lr", "weight_decay", "batch", "max_epochs", "patience", "val_fraction")},
-        "best_epoch": best_epoch, "epochs_run": epochs, "report": report,
-        "seconds": {"inputs": round(feat_s, 1), "train": round(train_s, 1), "total_this_call": round(time.time() - t_start, 1)},
-    }
+    seconds = {"inputs": round(feat_s, 1), "train": round(train_s, 1), "total_this_call": round(time.time() - t_start, 1)}
+    summary = TC.temporal_summary("train_support.py", argv, args, used,
+                                 ("lr", "weight_decay", "batch", "max_epochs", "patience", "val_fraction"),
+                                 best_epoch, epochs, report, seconds)
     (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     if args.ship:
         TC.ship_half(best, "support_tcn", summary)
