@@ -4,7 +4,9 @@
         --methods trajopt mocon mocon_uniform --set samples=64 window_frames=3 --out out/eval_mocon
 
 ``--set`` changes the config of every ``mocon`` method or variant (fields of
-:class:`jmocap.methods.mocon.MoconConfig`); the other methods run their defaults. Writes the
+:class:`jmocap.methods.mocon.MoconConfig`); the other methods run their defaults. ``--prior``:
+the learned prior's variables (a msgpack of ``experiments/train_mocon_prior.py``'s run, e.g.
+``RUN/pretrain.msgpack``) instead of the shipped ones, for ``mocon_prior``. Writes the
 evaluation's tables (``jmocap eval``'s outputs) to ``--out``.
 """
 
@@ -25,6 +27,7 @@ def main() -> None:
     ap.add_argument("--max-clips", type=int, default=6)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE")
+    ap.add_argument("--prior", default=None, help="a mocon prior msgpack instead of the shipped one")
     ap.add_argument("--out", default="out/eval_mocon")
     args = ap.parse_args()
     params, base = weights.load_run_params(None, method="trajopt")
@@ -41,6 +44,8 @@ def main() -> None:
         method, variant = methods.resolve(m) if m != "ground_truth" else (None, {})
         if method is not None and method.name == "mocon":
             p, cfg = weights.load_run_params(None, method=m)
+            if args.prior is not None:
+                p = {**p, "mocon_prior": weights.load_params(args.prior)}
             own[m] = (p, methods.config_dict(cfg.replace(**changes)))
     t = time.time()
     res = E.evaluate(args.archive, params, methods.config_dict(base),

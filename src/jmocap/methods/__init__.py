@@ -13,8 +13,9 @@
                           then trajopt under it (:mod:`jmocap.methods.dnd_trajopt`)
 ``mocon``                 offline: trajopt's fit tracked by a simulated character (MuJoCo C) with
                           Neural MoCon's sampling-based control (:mod:`jmocap.methods.mocon`);
-                          variants ``mocon_uniform``, ``mocon_no_interaction``, ``mocon_no_image``
-                          (Tab. 3's ablations)
+                          variants ``mocon_prior`` (the learned distribution prior,
+                          :mod:`jmocap.methods.mocon_prior`), ``mocon_uniform``,
+                          ``mocon_no_interaction``, ``mocon_no_image`` (Tab. 3's ablations)
 variants of ``physcap``   ``physionical`` (every stage on), ``fixed_gains``, ``no_grfnet``,
                           ``no_hard_constraint``, ``no_canonicalisation`` (the paper's ablations)
 ========================  ==================================================================

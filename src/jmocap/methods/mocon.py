@@ -49,8 +49,12 @@ The result: the simulated ``q``, ``qd``; ``tau`` the servos' and feed-forward hi
 1 where a site carries more than ``contact_force_share`` of the body weight; ``target_q`` the
 servo targets. Not a pure JAX function: MuJoCo C runs on the host (``Method.host``), so
 ``jmocap reconstruct`` and ``jmocap eval`` call it clip by clip; the reference and the losses are
-jitted JAX. Deterministic in ``seed`` (the MuJoCo C backend). The learned distribution prior of
-the paper (Sec. 3.3) is not part of it yet: the distribution is the fixed Gaussian above.
+jitted JAX. Deterministic in ``seed`` (the MuJoCo C backend).
+
+``sampling="prior"`` (variant ``mocon_prior``) draws each window's first round from the paper's
+learned distribution prior instead (Sec. 3.3, :mod:`jmocap.methods.mocon_prior`): an encoder of
+the character's state and the reference, trained on the cross-entropy distributions and through
+the two-branch decoder with MuJoCo in the loop (``experiments/train_mocon_prior.py``).
 """
 
 from __future__ import annotations
@@ -70,6 +74,7 @@ from mujoco import rollout
 from jmocap import physics as P
 from jmocap.constants import FRICTION_MU, GRAVITY
 from jmocap.inputs import ClipInputs
+from jmocap.methods import mocon_prior as MP
 from jmocap.methods import trajopt as TO
 from jmocap.methods.base import Method, Variant, register, register_variant, static, whole_clip
 from jmocap.methods.kinematic import LEARNED_STAGE_FIELDS
@@ -95,6 +100,9 @@ Array = jnp.ndarray
 #: balance the body); the others (arms, head) with ``other_sigma`` of it
 BALANCE_JOINTS = ("hip", "knee", "ankle", "foot", "spine")
 BACKENDS = ("mujoco", "mjx")
+#: where a window's first round of corrections comes from: the fixed Gaussian around the last
+#: correction, the same spread uniform (ablation), or the learned prior (mocon_prior)
+SAMPLINGS = ("gaussian", "uniform", "prior")
 #: a contact site this high or lower above the ground may take its foot's force (the synthetic
 #: ground truth's ``PhysicsConfig.site_floor_m``: the forces are split the same way)
 SITE_FLOOR_M = 0.02
@@ -116,7 +124,9 @@ class MoconConfig(TO.TrajOptConfig):
     contact_timeconst: float = static(0.004)  # MuJoCo solref time constant of the contacts (s)
     pd_freq_hz: float = static(8.0)  # servo bandwidth (critically damped, per hinge)
     feedforward: bool = static(True)  # the reference's own hinge torques (trajopt's) added to the servos
-    sampling: str = static("gaussian")  # or "uniform" (ablation)
+    # the first round's distribution (SAMPLINGS): "gaussian" (around carry x the last correction,
+    # spread sigma_rad), "uniform" (ablation) or "prior" (the learned prior's, mocon_prior)
+    sampling: str = static("gaussian")
     # rounds of sampling per window: after each, the next round's Gaussian is the weighted mean
     # and spread of its ``elites`` best samples (CMA-ES's (mu_W, lambda) weights, diagonal: the
     # cross-entropy method); 1: a single draw
@@ -158,8 +168,8 @@ class MoconConfig(TO.TrajOptConfig):
 def check_config(config: MoconConfig) -> None:
     if config.backend not in BACKENDS:
         raise ValueError(f"mocon backend must be one of {BACKENDS}, got {config.backend!r}")
-    if config.sampling not in ("gaussian", "uniform"):
-        raise ValueError(f"mocon sampling must be 'gaussian' or 'uniform', got {config.sampling!r}")
+    if config.sampling not in SAMPLINGS:
+        raise ValueError(f"mocon sampling must be one of {SAMPLINGS}, got {config.sampling!r}")
     if min(config.samples, config.window_frames) < 1 or config.lookahead_frames < 0:
         raise ValueError("mocon needs samples >= 1, window_frames >= 1 and lookahead_frames >= 0")
 
@@ -381,9 +391,38 @@ def _start_velocity(mj: mujoco.MjModel, q: np.ndarray, fps: float, frames: int =
     return v
 
 
-def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) -> Motion:
+def window_controls(q_ref: np.ndarray, ff: np.ndarray, hinge_q: np.ndarray, n: int, prev: np.ndarray,
+                    off: np.ndarray, k0: int, k1: int, k2: int, lookahead_gain: float) -> np.ndarray:
+    """Servo targets and feed-forward (S, steps, nu + nv) of the corrections ``off`` (S, nu) over
+    frames k0..k2-1 (``n`` substeps each; the window ends at k1): blended from ``prev`` over the
+    first frame, kept at ``lookahead_gain`` after the window; substeps interpolate the reference
+    ``q_ref`` (Te, nq) and its feed-forward ``ff`` (Te, nv) linearly between frames."""
+    Te, nu, nv = len(q_ref), len(hinge_q), ff.shape[1]
+    a = np.arange(n) / n
+    ks = np.arange(k0, k2)
+    nxt = np.minimum(ks + 1, Te - 1)
+    base = (q_ref[ks][:, None, hinge_q] * (1 - a)[None, :, None]
+            + q_ref[nxt][:, None, hinge_q] * a[None, :, None]).reshape(-1, nu)
+    fw = (ff[ks][:, None] * (1 - a)[None, :, None] + ff[nxt][:, None] * a[None, :, None]).reshape(-1, nv)
+    steps = (k1 - k0) * n
+    blend = np.minimum((np.arange(len(base)) + 1.0) / n, 1.0)
+    gain = np.where(np.arange(len(base)) < steps, 1.0, lookahead_gain)
+    corr = (prev[None, None] * (1 - blend)[None, :, None] + off[:, None] * blend[None, :, None]) * gain[None, :, None]
+    ctrl = base[None] + corr
+    return np.concatenate([ctrl, np.broadcast_to(fw[None], (len(off),) + fw.shape)], -1)
+
+
+def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig, prior: dict | None = None,
+          record: dict | None = None) -> Motion:
     """Track one clip's reference (``ref``, ``trajopt``'s result; numpy arrays of one clip, padded
-    frames marked by ``inputs.mask``) by sampling-based control (module docstring)."""
+    frames marked by ``inputs.mask``) by sampling-based control (module docstring).
+
+    ``prior``: the learned prior's variables (:mod:`jmocap.methods.mocon_prior`), needed with
+    ``config.sampling == "prior"``. ``record``: a dict that receives what the prior's training
+    recipe needs (``"clip"``: the reference, feed-forward and substeps; ``"windows"``: per
+    searched window, in order (a window searched again after a backtrack is recorded again),
+    its start state, features, the correction in force and the cross-entropy distribution of
+    its last round and best sample, in base-spread units)."""
     check_config(config)
     mask = np.asarray(inputs.mask, bool)
     T = int(mask.sum())
@@ -434,21 +473,7 @@ def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) ->
     spread = sim.spread * config.sigma_rad
 
     def controls(prev, off, k0, k1, k2):
-        """Servo targets and feed-forward (S, steps, nu + nv) of the corrections ``off`` over
-        frames k0..k2-1: blended from ``prev`` over the first frame, kept at ``lookahead_gain``
-        after the window; substeps interpolate the reference linearly between frames."""
-        a = np.arange(n) / n
-        ks = np.arange(k0, k2)
-        nxt = np.minimum(ks + 1, Te - 1)
-        base = (q_ref[ks][:, None, sim.hinge_q] * (1 - a)[None, :, None]
-                + q_ref[nxt][:, None, sim.hinge_q] * a[None, :, None]).reshape(-1, nu)
-        fw = (ff[ks][:, None] * (1 - a)[None, :, None] + ff[nxt][:, None] * a[None, :, None]).reshape(-1, nv)
-        steps = (k1 - k0) * n
-        blend = np.minimum((np.arange(len(base)) + 1.0) / n, 1.0)
-        gain = np.where(np.arange(len(base)) < steps, 1.0, config.lookahead_gain)
-        corr = (prev[None, None] * (1 - blend)[None, :, None] + off[:, None] * blend[None, :, None]) * gain[None, :, None]
-        ctrl = base[None] + corr
-        return np.concatenate([ctrl, np.broadcast_to(fw[None], (len(off),) + fw.shape)], -1)
+        return window_controls(q_ref, ff, sim.hinge_q, n, prev, off, k0, k1, k2, config.lookahead_gain)
 
     def commit(k0, k1, ctrl):
         """Step MuJoCo C over frames k0..k1-1 with the chosen controls, recording the forces."""
@@ -483,6 +508,15 @@ def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) ->
                                         jscene, layout=config.layout, weights=weights))
         return ctrl, loss
 
+    if config.sampling == "prior" and prior is None:
+        raise ValueError("mocon sampling='prior' needs the prior's variables (jmocap.methods.mocon_prior)")
+    if prior is not None and MP.nu_of(prior) != nu:
+        raise ValueError(f"the mocon prior was made for {MP.nu_of(prior)} hinges; this character has {nu}")
+    windows: list[dict] = []
+    if record is not None:
+        record["clip"] = dict(q_ref=q_ref, qd_ref=qd_ref, ff=ff, contact=reference["contact"], n=n,
+                              spread=spread, hinge_q=sim.hinge_q)
+        record["windows"] = windows
     snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     prev = np.zeros(nu)
     k0, retry_until = 0, -1
@@ -505,7 +539,18 @@ def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) ->
         frame_ref["intrinsics"] = jnp.asarray(intrinsics, jnp.float32)
         frame_ref["height_px"] = jnp.float32(height_px)
 
-        mean, std = config.carry * prev, scale
+        features = None
+        if prior is not None or record is not None:
+            features = MP.window_features(d.qpos, d.qvel, q_ref[[k0, k1, k2]], qd_ref[k0], reference["contact"][k1],
+                                          prev / spread)
+        if config.sampling == "prior":
+            mu, sig = jax.device_get(MP.encode_jit(prior, jnp.asarray(features[None])))
+            mean, std = mu[0].astype(np.float64) * spread, sig[0].astype(np.float64) * scale
+        else:
+            mean, std = config.carry * prev, scale
+        if record is not None:
+            start_state = np.zeros(mujoco.mj_stateSize(mj, _FULL))
+            mujoco.mj_getState(mj, d, start_state, _FULL)
         best_loss, best_off, best_ctrl = np.inf, None, None
         for it in range(config.iterations):
             if config.sampling == "uniform":
@@ -519,12 +564,15 @@ def track(model: Model, inputs: ClipInputs, ref: Motion, config: MoconConfig) ->
             b = int(np.argmin(loss))
             if loss[b] < best_loss:
                 best_loss, best_off, best_ctrl = loss[b], off[b], ctrl[b]
-            if it + 1 < config.iterations:  # the elites' weighted mean and spread (cross-entropy)
+            if it + 1 < config.iterations or record is not None:  # the elites' mean and spread (cross-entropy)
                 order = np.argsort(loss)[:config.elites]
                 w = np.log(config.elites + 0.5) - np.log(np.arange(1, len(order) + 1))
                 w /= w.sum()
                 mean = w @ off[order]
                 std = np.maximum(np.sqrt(w @ (off[order] - mean) ** 2), config.min_spread * scale)
+        if record is not None:
+            windows.append(dict(k0=k0, k1=k1, k2=k2, retry=retry, state=start_state, features=features, prev=prev / spread,
+                                mu=mean / spread, sigma=std / spread, best=best_off / spread, loss=best_loss))
         off, ctrl, best = best_off[None], best_ctrl[None], 0
         prev = off[best]
         commit(k0, k1, ctrl[best])
@@ -579,10 +627,11 @@ def reconstruct_host(params: dict, models: Sequence[Model], inputs: ClipInputs, 
     check_config(config)
     stacked = jax.tree.map(lambda *xs: np.stack(xs), *models)
     ref = jax.device_get(_batched_reference()(params, stacked, inputs, config))
+    prior = MP.prior_params(params) if config.sampling == "prior" else None
     out = []
     for b, model in enumerate(models):
         one = jax.tree.map(lambda x, b=b: np.asarray(x)[b], inputs)
-        out.append(track(model, one, jax.tree.map(lambda x, b=b: np.asarray(x)[b], ref), config))
+        out.append(track(model, one, jax.tree.map(lambda x, b=b: np.asarray(x)[b], ref), config, prior))
     return jax.tree.map(lambda *xs: np.stack(xs), *out)
 
 
@@ -601,7 +650,7 @@ METHOD = register(
         name="mocon",
         summary="offline: trajopt's fit on the clip's terrain tracked by a simulated character "
         "(MuJoCo C) with sampling-based control: no residual force, the simulator's contact forces",
-        paper="004 (Neural MoCon, Huang et al. 2022), Sec. 3.1, 3.2, 3.4 (the learned prior of Sec. 3.3 not yet)",
+        paper="004 (Neural MoCon, Huang et al. 2022), Sec. 3.1-3.4 (the learned prior of Sec. 3.3: variant mocon_prior)",
         config_type=MoconConfig,
         reconstruct=reconstruct,
         init_params=TO.init_params,
@@ -613,11 +662,15 @@ METHOD = register(
 
 register_variant(Variant("mocon_uniform", "mocon", {"sampling": "uniform"},
                          "mocon sampling uniformly instead of from the Gaussian (ablation, Tab. 3 of the paper)"))
+register_variant(Variant("mocon_prior", "mocon", {"sampling": "prior"},
+                         "mocon drawing each window's first round from the learned distribution prior (Sec. 3.3: "
+                         "an encoder of the character's state and the reference, trained on the cross-entropy "
+                         "distributions and through a two-branch decoder with MuJoCo in the loop)"))
 register_variant(Variant("mocon_no_interaction", "mocon", {"use_scene": False, "w_interaction": 0.0},
                          "mocon without the interaction term: its reference fitted on the floor z = 0 "
                          "and no contact term in the sampling loss (ablation, Tab. 3 of the paper)"))
 register_variant(Variant("mocon_no_image", "mocon", {"w_image": 0.0},
                          "mocon without the image-level loss (Eq. 13) in the sampling loss (ablation, Tab. 3 of the paper)"))
 
-__all__ = ["METHOD", "MoconConfig", "Simulation", "MjxRollouts", "MujocoRollouts", "reconstruct", "reconstruct_host",
-           "sample_losses", "track"]
+__all__ = ["METHOD", "SAMPLINGS", "MoconConfig", "Simulation", "MjxRollouts", "MujocoRollouts", "reconstruct",
+           "reconstruct_host", "sample_losses", "track", "window_controls"]
