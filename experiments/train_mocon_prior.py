@@ -68,8 +68,8 @@ def clip_key(archive: str, name: str) -> str:
     return f"{Path(archive).name}__{name}"
 
 
-def clip_parts(clip, config):
-    """The clip's estimate model, its inputs (one clip, padded) and its scene for the simulator."""
+def clip_parts(clip):
+    """The clip's estimate model and its inputs (one clip, padded; the scene among them)."""
     model = subject_model(clip)
     inputs = ClipInputs.from_clip(clip, padded_length(clip.num_frames))
     return model, inputs
@@ -93,7 +93,7 @@ def collect(run: Path, archives: list[str], max_clips: int | None, deadline: flo
             log(run, stage="collect", stopped="deadline", done=len(list(out.glob('*.npz'))))
             return
         t = time.time()
-        model, inputs = clip_parts(clip, config)
+        model, inputs = clip_parts(clip)
         stacked = jax.tree.map(lambda x: np.asarray(x)[None], model)
         ref = jax.device_get(MC._batched_reference()(params, stacked, stack_inputs([inputs]), config))
         one_ref = jax.tree.map(lambda x: np.asarray(x)[0], ref)
@@ -126,16 +126,14 @@ def stack_pretrain(data: list[dict]):
     return f, mu, sigma
 
 
-def adam_steps(params, opt, state, loss_fn, batches, mask=None):
-    grad = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))
-    loss, aux = jnp.nan, None
+def adam_steps(params, opt, state, grad, batches):
+    """Adam steps over ``batches`` with ``grad`` (a jitted value-and-grad with aux)."""
+    loss = jnp.nan
     for b in batches:
-        (loss, aux), g = grad(params, *b)
-        if mask is not None:
-            g = jax.tree.map(lambda x, m: x * m, g, mask)
+        (loss, _), g = grad(params, *b)
         upd, state = opt.update(g, state, params)
         params = optax.apply_updates(params, upd)
-    return params, state, float(loss), aux
+    return params, state, float(loss)
 
 
 def minibatches(rng, n, size, arrays):
@@ -161,11 +159,12 @@ def pretrain(run: Path, data: list[dict], nu: int, epochs: int, lr: float, seed:
         loss = MP.pretrain_loss(p, ff, m, s, jnp.ones(ff.shape[0]))
         return loss, {}
 
+    grad = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))
     ones = jnp.ones(int(val.sum()))
     best, best_kl = params, np.inf
     for e in range(epochs):
-        params, state, loss, _ = adam_steps(params, opt, state, loss_fn,
-                                            minibatches(rng, int((~val).sum()), 256, (f[~val], mu[~val], sigma[~val])))
+        params, state, loss = adam_steps(params, opt, state, grad,
+                                         minibatches(rng, int((~val).sum()), 256, (f[~val], mu[~val], sigma[~val])))
         v = float(MP.pretrain_loss(params, jnp.asarray(f[val]), jnp.asarray(mu[val]), jnp.asarray(sigma[val]), ones))
         if v < best_kl:  # early stopping on the held-back windows
             best, best_kl = params, v
@@ -186,7 +185,7 @@ class Branch:
     def __init__(self, d: dict, config):
         archive, name = str(d["archive"]), str(d["name"])
         clip = archive_clips(archive)[name]
-        model, inputs = clip_parts(clip, config)
+        model, inputs = clip_parts(clip)
         scene = inputs.scene if inputs.scene is not None and boxes(inputs.scene) else None
         self.sim = MC.Simulation(model, scene, float(inputs.fps), config)
         self.datas = [mujoco.MjData(self.sim.mj) for _ in range(2)]
