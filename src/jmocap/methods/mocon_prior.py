@@ -32,7 +32,7 @@ Choices where the paper is silent (docs/method.md, "the learned prior of ``mocon
   share), so the networks see numbers of order one; ``sigma`` is bounded to
   [``SIGMA_MIN``, ``SIGMA_MAX``] of that spread.
 
-The state features (:func:`window_features`, :data:`NUM_FEATURES` for ``nu`` hinges): the hinge
+The state features (:func:`window_features`, :func:`num_features` of them for ``nu`` hinges): the hinge
 angles' and velocities' errors against the reference, the root's orientation error (a rotation
 vector in the reference root's frame), its position and velocity errors in the reference's
 heading frame, its angular velocity error, the reference's hinge change to the window's end and
