@@ -252,16 +252,16 @@ def two_branch(run: Path, data: list[dict], params: dict, rounds: int, warmup: i
     for r in range(start, rounds):
         rng = np.random.default_rng(seed * 1000 + r)
         t = time.time()
-        F, E, S, M, G = [], [], [], [], []
+        F, E, C, S, M, G = [], [], [], [], [], []
         for b, f, m, s in zip(branches, feats, mu_ce, sig_ce, strict=True):
             mu, sig = jax.device_get(MP.encode_jit(params, jnp.asarray(f)))
             for _ in range(draws):
                 eps = rng.normal(size=mu.shape).astype(np.float32)
-                S.append(b.simulate(mu + sig * eps))
+                C.append(mu + sig * eps)
+                S.append(b.simulate(C[-1]))
                 F.append(f), E.append(eps), M.append(m), G.append(s)
-        F, E, S, M, G = (np.concatenate(x) for x in (F, E, S, M, G))
-        mu, sig = jax.device_get(MP.encode_jit(params, jnp.asarray(F)))
-        pred = np.asarray(decode(params, jnp.asarray(F), jnp.asarray(mu + sig * E)))
+        F, E, C, S, M, G = (np.concatenate(x) for x in (F, E, C, S, M, G))
+        pred = np.asarray(decode(params, jnp.asarray(F), jnp.asarray(C)))
         sim_heldout = float(np.mean((pred - S) ** 2))
         sim_dev = float(np.mean(S**2))
         # the encoder that drew this round's corrections, judged by the simulator: kept if its
