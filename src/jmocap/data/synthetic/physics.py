@@ -59,11 +59,18 @@ class SamplingConfig:
     """The sampling controller of :func:`jmocap.data.synthetic.sampling.simulate_sampling`
     (``PhysicsConfig.controller = "sampling"``). Cost weights are per frame, on errors in metres and radians."""
 
-    samples: int = 64
+    # "qp": every sample is driven by the QP tracker's whole-body inverse dynamics (its hinge
+    # torques solved with the contacts, the root rows with no root force) towards the plan's
+    # hinge angles plus the sample's offset, re-solved every ``qp_substeps`` substeps (stop 63);
+    # "servo": position servos on the hinges plus a feed-forward (stop 44), cheaper per sample
+    # but pushing planted feet past friction (docs/data.md, "Why its feet skate")
+    actuation: str = "qp"
+    samples: int = 0  # per window; 0: the actuation's default (qp 16, servo 64)
+    qp_substeps: int = 6  # "qp": the QP is solved every this many substeps, its torques held between
     # durations in seconds, rounded to whole frames at the clip's rate (3, 12 and 1 frames at 30 fps)
     window_s: float = 0.1  # one control window
     lookahead_s: float = 0.4  # simulated past the window to score a sample
-    pd_freq_hz: float = 8.0
+    pd_freq_hz: float = 8.0  # "servo": the servos' frequency
     sigma: float = 0.1  # rad, the offsets' standard deviation
     # the hinges sampled with the full ``sigma`` (names containing one of these: the legs and
     # the trunk, which balance the body); the others (arms, head) with ``other_sigma`` x sigma
@@ -85,7 +92,7 @@ class SamplingConfig:
     w_pose: float = 5.0  # mean squared hinge error
     w_vel: float = 1.0  # root linear velocity
     w_pos: float = 0.3  # root world position
-    feedforward_margin_m: float = 0.005  # plan foot geoms this near the floor support it (feed-forward)
+    feedforward_margin_m: float = 0.005  # "servo": plan foot geoms this near the floor support it (feed-forward)
     backtrack_tilt_deg: float = 25.0
     backtrack_windows: int = 2
     backtrack_factor: int = 4  # samples x this after a backtrack
@@ -101,6 +108,17 @@ class SamplingConfig:
     rescue_s: float = 0.0
     rescue_freq_hz: float = 1.0
     threads: int = 2  # rollout threads
+
+    def __post_init__(self):
+        if self.actuation not in ("qp", "servo"):
+            raise ValueError(f"SamplingConfig.actuation must be 'qp' or 'servo', got {self.actuation!r}")
+        if self.samples < 0 or self.qp_substeps < 1:
+            raise ValueError("SamplingConfig needs samples >= 0 and qp_substeps >= 1")
+
+    @property
+    def num_samples(self) -> int:
+        """Samples per window: ``samples``, or the actuation's default when 0."""
+        return self.samples or (16 if self.actuation == "qp" else 64)
 
 
 @dataclass(frozen=True)

@@ -9,21 +9,32 @@ the joint targets that keep a simulated character *balanced* close to the plan, 
 of SAMCON (Liu et al. 2010, "Sampling-based contact-rich motion control") and of Neural MoCon's
 sampling control (Huang et al. 2022, Sec. 3.1):
 
-* the character is driven by PD servos on every hinge (MuJoCo position actuators, stiffness
-  ``I_i (2 pi f)^2`` and damping ``2 I_i (2 pi f)``, ``I_i`` the standing pose's joint-space
-  inertia diagonal) towards the plan's hinge angles plus a per-window offset, and by a
-  feed-forward hinge torque: the QP tracker's torques at the plan's own state, whose root rows
-  the plan's contacts balance. The root is never actuated;
+* every sample is driven towards the plan's hinge angles plus a per-window offset, and the root
+  is never actuated. ``SamplingConfig.actuation`` says how:
+
+  - ``"qp"`` (the default, stop 63): the QP tracker's whole-body inverse dynamics
+    (:func:`jmocap.data.synthetic.physics._control`: hinge torques solved together with the
+    friction-pyramid forces of the contacts MuJoCo has, the root rows with no root force,
+    touching points held still), re-solved from the sample's own state every ``qp_substeps``
+    substeps and held between. Its torques respect the contacts, so planted feet stay planted;
+  - ``"servo"`` (stop 44): PD servos on every hinge (MuJoCo position actuators, stiffness
+    ``I_i (2 pi f)^2`` and damping ``2 I_i (2 pi f)``, ``I_i`` the standing pose's joint-space
+    inertia diagonal) and a feed-forward hinge torque (the QP tracker's torques at the plan's
+    own state). Cheaper per sample, but the independent servos push planted feet harder than
+    friction holds them (docs/data.md, "Why its feet skate");
 * per control window (``window_s`` seconds, in whole frames) ``samples`` offsets are drawn (Gaussian, standard
   deviation ``sigma`` rad, around ``carry`` times the previous window's offset), blended from
-  the offset in force over the window's first ``ramp_s``, each is rolled out by ``mujoco.rollout`` (MuJoCo C, multi-threaded) over the window and a ``lookahead_s`` of
+  the offset in force over the window's first ``ramp_s``, each is rolled out by ``mujoco.rollout`` (MuJoCo C,
+  multi-threaded; the QP actuation in chunks of ``qp_substeps`` substeps, each sample's QP solved
+  between them, from a zero solver warm start) over the window and a ``lookahead_s`` of
   further time (the offset then decayed to ``lookahead_gain`` of itself), and scored against
   the plan frame by frame: the root's horizontal position *relative to the feet* (balance
   over the support, not the plan's world path: a walk may lag its plan), its height, its
   orientation, the hinge angles, the root velocity and, weakly, the world position;
 * the best sample's window is committed by stepping MuJoCo C itself (the same model, state and
-  controls, so the committed motion is exactly the rollout's) while recording the contact
-  forces as :func:`jmocap.data.synthetic.physics.simulate_tracking` does;
+  controls, so the committed motion is exactly the rollout's: ``stats["commit_mismatch"]`` is
+  the largest difference, 0) while recording the contact forces as
+  :func:`jmocap.data.synthetic.physics.simulate_tracking` does;
 * when the pelvis tilts more than ``backtrack_tilt_deg`` from the plan's, the search returns
   ``backtrack_windows`` windows and draws ``backtrack_factor`` times more samples with
   ``backtrack_sigma`` times the spread;
@@ -119,12 +130,14 @@ def _support_points(mj, q, sites) -> np.ndarray:
 
 def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: PhysicsConfig, lead: int = 0,
                       rng: np.random.Generator | None = None) -> dict:
-    """Track a kinematic motion in MuJoCo C by sampling-based control (module docstring): joint
-    servos, feed-forward hinge torques and contacts, never a root force. ``cfg`` is a
+    """Track a kinematic motion in MuJoCo C by sampling-based control (module docstring): hinge
+    torques (the QP actuation's, or servos and a feed-forward) and contacts, a root force only
+    in the rescues. ``cfg`` is a
     :class:`~jmocap.data.synthetic.physics.PhysicsConfig` (its ``sampling`` settings, substeps,
     contact model, labels); ``lead`` as :func:`~jmocap.data.synthetic.physics.simulate_tracking`,
-    whose return value this has (``residual`` all zeros; ``stats`` adds ``controller``,
-    ``backtracks`` and ``samples_simulated``). Deterministic in ``rng`` (default seed 0)."""
+    whose return value this has (``residual`` zero outside the rescues; ``stats`` adds
+    ``controller``, ``actuation``, ``backtracks``, ``samples_simulated``, ``rescues`` and
+    ``commit_mismatch``). Deterministic in ``rng`` (default seed 0)."""
     sc = cfg.sampling
     rng = np.random.default_rng(0) if rng is None else rng
     T = len(q_ref)
@@ -132,17 +145,27 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         raise ValueError(f"lead-in of {lead} frames needs 0 <= lead < len(q_ref) = {T}")
     n = cfg.substeps_per_frame or max(1, int(math.ceil(1.0 / fps / cfg.max_dt - 1e-9)))
     dt = 1.0 / fps / n
-    mj, kv = sampling_model(ch, dt, cfg.contact_timeconst, sc.pd_freq_hz)
-    nv, nu = mj.nv, mj.nu
-    hinge_q = np.array([mj.jnt_qposadr[mj.actuator_trnid[a, 0]] for a in range(nu)])
-    names = [mujoco.mj_id2name(mj, mujoco.mjtObj.mjOBJ_JOINT, int(mj.actuator_trnid[a, 0])) for a in range(nu)]
+    qp = sc.actuation == "qp"
+    if qp:
+        # no actuators: the QP's torques go through qfrc_applied
+        mj, kv = simulation_model(ch.mj, dt, cfg.contact_timeconst), np.zeros(ch.mj.nv)
+        joints = [j for j in range(mj.njnt) if mj.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE]
+    else:
+        mj, kv = sampling_model(ch, dt, cfg.contact_timeconst, sc.pd_freq_hz)
+        joints = [int(mj.actuator_trnid[a, 0]) for a in range(mj.nu)]
+    nv = mj.nv
+    nu = len(joints)  # one offset per hinge
+    hinge_q = np.array([mj.jnt_qposadr[j] for j in joints])
+    if qp and not np.array_equal(hinge_q, np.arange(7, mj.nq)):
+        raise ValueError("the QP actuation needs the hinges to be the dofs after the free root")
+    names = [mujoco.mj_id2name(mj, mujoco.mjtObj.mjOBJ_JOINT, j) for j in joints]
     free = np.array([1.0 if any(p in nm for p in sc.sampled) else sc.other_sigma for nm in names])
     # one frame past the end, the last held, so that the last frame's forces have their substeps
     qr = np.concatenate([q_ref, q_ref[-1:]])
     Te = T + 1
     qd_ref, qdd_ref = reference_derivatives(mj, qr, fps)
     qd_ref[-1], qdd_ref[-1] = 0.0, 0.0
-    ff = feedforward(ch, mj, qr, qd_ref, qdd_ref, cfg)
+    ff = None if qp else feedforward(ch, mj, qr, qd_ref, qdd_ref, cfg)
     sites = list(ch.contact_sites)
     support_ref = _support_points(mj, qr, sites)
     mass = float(np.sum(mj.body_mass))
@@ -162,7 +185,10 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     nonfoot = np.zeros(Te, int)
 
     def targets(k0: int, k1: int):
-        """Servo targets (steps, nu) and feed-forward (steps, nv) of the substeps of frames k0..k1-1."""
+        """Servo targets (steps, nu) and feed-forward (steps, nv) of the substeps of frames k0..k1-1
+        (the QP actuation: zero targets, to which the offsets are added, and no feed-forward)."""
+        if qp:
+            return np.zeros(((k1 - k0) * n, nu)), None
         a = np.arange(n) / n
         tq = [qr[k, hinge_q][None] * (1 - a[:, None]) + qr[min(k + 1, Te - 1), hinge_q][None] * a[:, None]
               for k in range(k0, k1)]
@@ -215,9 +241,49 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         mujoco.mj_fullM(mj, d, M)
         return M[:6, :6] @ (kp * e + kd * (vref - d.qvel[:6]))
 
-    def commit(k0: int, k1: int, ctrl: np.ndarray, force: np.ndarray, rescue: bool = False) -> None:
+    # the QP actuation: the QP tracker's gains and weights (PhysicsConfig), no root force
+    sw = np.zeros(nv)
+    kp_qp = (2 * math.pi * np.r_[np.full(6, cfg.root_freq_hz), np.full(nv - 6, cfg.joint_freq_hz)]) ** 2
+    kd_qp = 2 * cfg.zeta * np.sqrt(kp_qp)
+    if qp:
+        ds = mujoco.MjData(mj)
+        ds.qpos[:] = ch.q_stand
+        mujoco.mj_forward(mj, ds)
+        mujoco.mj_fullM(mj, ds, M)
+        sw = np.sqrt(np.diag(M)) * np.r_[np.full(6, cfg.w_root), np.full(nv - 6, cfg.w_joint)]
+    E = pyramid_edges()
+    jp = np.zeros((3, nv))
+    e_qp = np.zeros(nv)
+    MM = np.zeros((nv, nv))
+
+    def qp_torque(dd: mujoco.MjData, k: int, a: float, off: np.ndarray) -> np.ndarray:
+        """The QP actuation's generalised force (nv,; root entries 0) at ``dd`` (after
+        ``mj_step1``), substep ``a`` (0..1) of frame k: :func:`~jmocap.data.synthetic.physics._control`
+        (the QP tracker's whole-body inverse dynamics with the contacts MuJoCo has, the root rows
+        with no root force) towards the plan's hinge angles plus ``off`` (nu,) and the plan's root
+        height and orientation, its horizontal place taken relative to the feet as the search
+        scores it."""
+        kb = min(k + 1, Te - 1)
+        qa, qb = qr[k], qr[kb].copy()
+        if np.dot(qa[3:7], qb[3:7]) < 0:
+            qb[3:7] *= -1
+        ref = (1 - a) * qa + a * qb
+        ref[:2] += dd.site_xpos[sites, :2].mean(0) - ((1 - a) * support_ref[k] + a * support_ref[kb])
+        rot = np.zeros(3)
+        mujoco.mju_subQuat(rot, ref[3:7] / np.linalg.norm(ref[3:7]), dd.qpos[3:7])
+        e_qp[:3], e_qp[3:6], e_qp[6:] = ref[:3] - dd.qpos[:3], rot, _wrap(ref[7:] + off - dd.qpos[7:])
+        a_des = ((1 - a) * qdd_ref[k] + a * qdd_ref[kb] + kp_qp * e_qp
+                 + kd_qp * ((1 - a) * qd_ref[k] + a * qd_ref[kb] - dd.qvel))
+        con, _ = _floor_contacts(dd, floor, geom_foot, geom_body)
+        A, Jc = _contact_jacobians(mj, dd, con, E, jp)
+        mujoco.mj_fullM(mj, dd, MM)
+        return _control(MM, dd.qfrc_bias, A, Jc, Jc @ dd.qvel, a_des, sw, cfg, mass, False)
+
+    def commit(k0: int, k1: int, ctrl: np.ndarray, force: np.ndarray | None, rescue: bool = False) -> None:
         """Step MuJoCo C over frames k0..k1-1 with the chosen controls, recording the forces;
-        ``rescue``: with the rescue's root wrench (:func:`rescue_wrench`) as well."""
+        ``rescue``: with the rescue's root wrench (:func:`rescue_wrench`) as well. The QP
+        actuation: ``ctrl`` holds the offsets per substep and ``force`` is None; the QP is solved
+        every ``qp_substeps`` substeps from a zero solver warm start, as in :func:`evaluate`."""
         e_rot = np.zeros(3)
         for k in range(k0, k1):
             q_out[k], qd_out[k] = d.qpos, d.qvel
@@ -233,8 +299,13 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
                 sp = d.site_xpos[sites].copy()
                 if i == 0:
                     site_z[k] = sp[:, 2]
-                d.ctrl[:] = ctrl[j]
-                d.qfrc_applied[:] = force[j]
+                if not qp:
+                    d.ctrl[:] = ctrl[j]
+                    d.qfrc_applied[:] = force[j]
+                elif i % sc.qp_substeps == 0:
+                    # a zero warm start where each rollout starts, so the commit is the rollout
+                    d.qacc_warmstart[:] = 0.0
+                    d.qfrc_applied[:] = qp_torque(d, k, i / n, ctrl[j])
                 if rescue:
                     d.qfrc_applied[:6] = rescue_wrench(k, i / n)
                     sub["rescue"][s] = True
@@ -253,11 +324,50 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         ctrl[:, steps:] += sc.lookahead_gain * offsets[:, None, :]
         return ctrl
 
+    chunks = [(i, min(i + sc.qp_substeps, n)) for i in range(0, n, sc.qp_substeps)]
+    scratch = mujoco.MjData(mj)
+
+    def evaluate_qp(ctrl, k0, k2):
+        """The QP actuation's rollouts of the per-substep offsets ``ctrl`` (m, steps, nu) from the
+        state in ``state``: per chunk of ``qp_substeps`` substeps, each sample's QP torques at its
+        own state, then ``mujoco.rollout`` of all samples over the chunk with those torques held
+        (zero solver warm start, as :func:`commit`). Returns the costs (m,) over frames k0+1 .. k2
+        and the states (m, nstate) at the end of every frame."""
+        m = len(ctrl)
+        st = np.repeat(state[None], m, axis=0)
+        total = np.zeros(m)
+        alive = np.ones(m, bool)
+        tau = np.zeros((m, nv))
+        ends = np.zeros((k2 - k0, m, len(state)))
+        for j, k in enumerate(range(k0, k2)):
+            for i0, i1 in chunks:
+                for s in np.flatnonzero(alive):
+                    mujoco.mj_setState(mj, scratch, st[s], full_spec)
+                    mujoco.mj_step1(mj, scratch)
+                    tau[s] = qp_torque(scratch, k, i0 / n, ctrl[s, j * n + i0])
+                out, _ = rollout.rollout(mj, datas, st, np.repeat(tau[:, None], i1 - i0, axis=1),
+                                         control_spec=mujoco.mjtState.mjSTATE_QFRC_APPLIED, nstep=i1 - i0,
+                                         initial_warmstart=np.zeros((m, nv)))
+                st = out[:, -1].copy()
+                alive &= np.all(np.isfinite(st), axis=1)
+                st[~alive] = state  # a diverged sample is scored inf and no longer simulated
+            c = cost(st, k + 1)
+            total += np.where(alive & np.isfinite(c), c, np.inf)
+            alive &= np.isfinite(total)
+            st[~alive] = state
+            ends[j] = st
+        return total, ends
+
     def evaluate(offsets, prev, base_q, base_f, a, steps, k0, k2):
-        """Servo targets of the offsets (:func:`servo_targets`) and their costs (m,) over frames
-        k0+1 .. k2, rolled out from the state in ``state``."""
+        """Servo targets of the offsets (:func:`servo_targets`; the QP actuation: the offsets per
+        substep) and their costs (m,) over frames k0+1 .. k2, rolled out from the state in
+        ``state``; and the rolled-out states (m, nstate) at the window's end (frame k0 + steps / n)."""
         m = len(offsets)
         ctrl = servo_targets(offsets, prev, base_q, a, steps)
+        if qp:
+            total, ends = evaluate_qp(ctrl, k0, k2)
+            total += sc.w_change * np.mean((offsets - prev[None]) ** 2, axis=1)
+            return ctrl, total, ends[steps // n - 1]
         controls = np.concatenate([ctrl, np.broadcast_to(base_f[None], (m,) + base_f.shape)], axis=-1)
         states, _ = rollout.rollout(mj, datas, state[None], controls, control_spec=control_spec,
                                     nstep=(k2 - k0) * n, initial_warmstart=d.qacc_warmstart[None].copy())
@@ -266,7 +376,7 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         for j, k in enumerate(range(k0 + 1, k2 + 1)):
             c = cost(states[:, (j + 1) * n - 1], k)
             total += np.where(np.isfinite(c), c, np.inf)
-        return ctrl, total
+        return ctrl, total, states[:, steps - 1]
 
     def fallen() -> bool:
         """The simulated state is not finite, or the pelvis is below the fall height or tilted past
@@ -276,7 +386,7 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
 
     snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     prev = np.zeros(nu)
-    k0, backtracks, retry_until, simulated = 0, 0, -1, 0
+    k0, backtracks, retry_until, simulated, mismatch = 0, 0, -1, 0, 0.0
     rescue_frames = max(0, round(sc.rescue_s * fps))
     rescue_until, rescues, fail_at, fails_here = -1, 0, -(10 ** 9), 0
     while k0 < Te - 1:
@@ -290,33 +400,37 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         if k0 < rescue_until:
             # the rescue: the servos at the plan (the offset in force decaying) and a root wrench
             off = sc.carry * prev
-            commit(k0, k1, servo_targets(off[None], prev, base_q, a, steps)[0, :steps], base_f[:steps], rescue=True)
+            commit(k0, k1, servo_targets(off[None], prev, base_q, a, steps)[0, :steps],
+                   None if qp else base_f[:steps], rescue=True)
             prev = off
             if fallen():
                 raise GenerationError(f"the sampling controller's rescue lost balance at frame {k1}")
             k0 = k1
             continue
         retry = k0 < retry_until
-        N = sc.samples * (sc.backtrack_factor if retry else 1)
+        N = sc.num_samples * (sc.backtrack_factor if retry else 1)
         sigma = sc.sigma * (sc.backtrack_sigma if retry else 1.0)
         scale = np.asarray(sc.sigma_scales, float)[np.arange(N) % len(sc.sigma_scales)]
         off = sc.carry * prev[None] + rng.normal(size=(N, nu)) * (sigma * free) * scale[:, None]
         off[0] = sc.carry * prev
         mujoco.mj_getState(mj, d, state, full_spec)
 
-        ctrl, total = evaluate(off, prev, base_q, base_f, a, steps, k0, k2)
+        ctrl, total, ends = evaluate(off, prev, base_q, base_f, a, steps, k0, k2)
         simulated += N * (k2 - k0) * n
         best = int(np.argmin(total))
         if sc.elite > 1:
             # the mean of the best few samples: the noise of any one draw averages out (smoother
             # servo targets); taken when it scores at least as well as the best draw
             mean = off[np.argsort(total)[:sc.elite]].mean(0, keepdims=True)
-            ctrl_m, total_m = evaluate(mean, prev, base_q, base_f, a, steps, k0, k2)
+            ctrl_m, total_m, ends_m = evaluate(mean, prev, base_q, base_f, a, steps, k0, k2)
             simulated += (k2 - k0) * n
             if total_m[0] <= total[best]:
-                off, ctrl, best = mean, ctrl_m, 0
+                off, ctrl, ends, best = mean, ctrl_m, ends_m, 0
         prev = off[best]
-        commit(k0, k1, ctrl[best, :steps], base_f[:steps])
+        commit(k0, k1, ctrl[best, :steps], None if qp else base_f[:steps])
+        # the committed window is the chosen rollout (bit for bit; recorded, tested)
+        mujoco.mj_getState(mj, d, state, full_spec)
+        mismatch = max(mismatch, float(np.max(np.abs(state - ends[best]))))
         bad = fallen() or tilt(d.qpos[3:7], qr[k1, 3:7]) > math.radians(sc.backtrack_tilt_deg)
         if bad:
             backtracks += 1
@@ -337,6 +451,6 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     sim = frames_from_substeps(ch, q_ref, q_out[:T], qd_out[:T], fps, n, lead, cfg, weight,
                                {k: v[:T * n] for k, v in sub.items()}, site_z[:T], root_err[:T],
                                int(nonfoot[:T].sum()))
-    sim["stats"].update(controller="sampling", backtracks=int(backtracks), samples_simulated=int(simulated),
-                        rescues=int(rescues))
+    sim["stats"].update(controller="sampling", actuation=sc.actuation, backtracks=int(backtracks),
+                        samples_simulated=int(simulated), rescues=int(rescues), commit_mismatch=mismatch)
     return sim
