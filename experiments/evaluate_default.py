@@ -6,10 +6,10 @@
                                                                           # smoke run of the harness
 
 1. Makes the held-out archive if it is missing or short, exactly as
-   ``jmocap data synth --out data/heldout --clips N --seed 123 --physics --controller qp``
-   (synthetic clips tracked in MuJoCo simulation: ground-truth torques and contact forces, the
-   QP tracker's rescue residual recorded per frame; ``ARCHIVE_CONTROLLER`` says why not the
-   sampling controller). The archive resumes,
+   ``jmocap data synth --out data/heldout --clips N --seed 123 --physics --controller sampling``
+   (synthetic clips simulated in MuJoCo: ground-truth torques and contact forces of a motion
+   moved by joint torques and contacts, a root force only in the sampling controller's rare
+   rescues, recorded per frame; ``ARCHIVE_CONTROLLER``). The archive resumes,
    so ``--max-clips K`` generates only its first K clips, a prefix of the full archive; an
    archive made with another controller is refused (``--controller`` evaluates another one).
 2. Runs :func:`jmocap.evaluate.evaluate` over it with every method (or ``--methods``) and writes
@@ -36,13 +36,12 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 ARCHIVE_SEED = 123
-# the QP tracker's ground truth (its root residual recorded per frame; the forces are scored on
-# the frames without it). The sampling controller's archive (issue 23) keeps the same 40 motions
-# since its rescue (stop 53) and pushes the root on 3.3 % of the frames instead of 21.9 %, but its
-# motion is not human enough to score methods against: the ground truth's own foot skate 22.9 %
-# (4.3 % here), jitter 3.3x, non-penetration 96.9 % (docs/evaluation.md, "The sampling
-# controller's archive")
-ARCHIVE_CONTROLLER = "qp"
+# the sampling controller's ground truth (issue 23; since stop 63): every sample driven by the QP
+# tracker's contact-respecting inverse dynamics, a root force only in its rare rescues (recorded;
+# the forces are scored on the frames without it). Until stop 62 this was the QP tracker's
+# archive ("qp"), whose root residual acted on 21.9 % of the frames; the servo-driven sampling
+# controller's feet skated too much to score methods against (docs/evaluation.md, "Results")
+ARCHIVE_CONTROLLER = "sampling"
 BEGIN = "<!-- results:begin -->"
 END = "<!-- results:end -->"
 

@@ -131,8 +131,9 @@ def _data(p: argparse.ArgumentParser) -> None:
     s.add_argument("--controller", choices=["qp", "sampling"], default="qp",
                    help="with --physics: the simulation's controller: 'qp' (default) the QP tracker, with a "
                         "recorded root residual where the plan is infeasible; 'sampling' sampling-based "
-                        "control (mujoco.rollout), a root force only in its rare rescues (recorded), about 8x "
-                        "slower (docs/data.md)")
+                        "control (mujoco.rollout) whose samples the QP tracker's contact-respecting inverse "
+                        "dynamics drives, a root force only in its rare rescues (recorded); the held-out "
+                        "archive's, several times slower (docs/data.md)")
     s.add_argument("--frames-per-clip", type=_frames_arg, default=(150, 300), metavar="N|MIN:MAX",
                    help="clip length in frames (default 150:300)")
     s.add_argument("--layout", default="body25", choices=["body25", "coco17", "h36m17", "halpe26"],
