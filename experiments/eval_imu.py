@@ -1,7 +1,7 @@
 """PIP on six IMUs (``jmocap.methods.pip_imu``) on a held-out synthetic IMU archive, with the
 paper's ablations.
 
-    .venv/bin/jmocap data synth --imu --physics --out data/imu_test_phys --clips 32 --seed 3
+    .venv/bin/jmocap data synth --imu --physics --controller sampling --out data/imu_test_phys --clips 32 --seed 3
     .venv/bin/python experiments/eval_imu.py [--archive data/imu_test_phys] [--params P] [--no-docs]
 
 Rows (each clip from its known first pose, as PIP's evaluation, unless said):
