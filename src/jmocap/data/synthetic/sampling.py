@@ -398,7 +398,8 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         # from the offset in force (the last window's) to the next
         a = np.minimum((np.arange(steps) + 1.0) / max(ramp * n, 1), 1.0)
         if k0 < rescue_until:
-            # the rescue: the servos at the plan (the offset in force decaying) and a root wrench
+            # the rescue: the servos (or the QP) at the plan (the offset in force decaying) and a
+            # root wrench
             off = sc.carry * prev
             commit(k0, k1, servo_targets(off[None], prev, base_q, a, steps)[0, :steps],
                    None if qp else base_f[:steps], rescue=True)
@@ -428,9 +429,11 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
                 off, ctrl, ends, best = mean, ctrl_m, ends_m, 0
         prev = off[best]
         commit(k0, k1, ctrl[best, :steps], None if qp else base_f[:steps])
-        # the committed window is the chosen rollout (bit for bit; recorded, tested)
-        mujoco.mj_getState(mj, d, state, full_spec)
-        mismatch = max(mismatch, float(np.max(np.abs(state - ends[best]))))
+        # the committed window is the chosen rollout (bit for bit; recorded, tested), unless every
+        # sample diverged (then the window fails below and is searched again)
+        if np.isfinite(total[best]):
+            mujoco.mj_getState(mj, d, state, full_spec)
+            mismatch = max(mismatch, float(np.max(np.abs(state - ends[best]))))
         bad = fallen() or tilt(d.qpos[3:7], qr[k1, 3:7]) > math.radians(sc.backtrack_tilt_deg)
         if bad:
             backtracks += 1
