@@ -222,19 +222,26 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     kp = (2 * math.pi * sc.rescue_freq_hz) ** 2
     kd = 2 * math.sqrt(kp)
 
-    def rescue_wrench(k: int, a: float) -> np.ndarray:
-        """The rescue's root wrench (6,) at the substep ``a`` (0..1) of frame k: a critically
-        damped PD (free-joint coordinates: world force, body-frame torque) through the root
-        block of the mass matrix (``d`` after ``mj_step1``) towards the plan's root as the
-        search scores it: its height and orientation, and its horizontal place *relative to the
-        feet* (the mean of the contact sites; a walk that lags its plan is not pulled back)."""
+    def plan_at(k: int, a: float, feet_xy: np.ndarray):
+        """The plan at substep ``a`` (0..1) of frame k, linearly interpolated: ``q`` (nq,), its
+        root's horizontal place taken *relative to the feet* (the mean of the contact sites now at
+        ``feet_xy``), as the search scores it (a walk that lags its plan is not pulled back);
+        ``qd`` and ``qdd`` (nv,)."""
         kb = min(k + 1, Te - 1)
         qa, qb = qr[k], qr[kb].copy()
         if np.dot(qa[3:7], qb[3:7]) < 0:
             qb[3:7] *= -1
-        ref = (1 - a) * qa[:7] + a * qb[:7]
-        ref[:2] += d.site_xpos[sites, :2].mean(0) - ((1 - a) * support_ref[k] + a * support_ref[kb])
-        vref = (1 - a) * qd_ref[k, :6] + a * qd_ref[kb, :6]
+        q = (1 - a) * qa + a * qb
+        q[:2] += feet_xy - ((1 - a) * support_ref[k] + a * support_ref[kb])
+        return q, (1 - a) * qd_ref[k] + a * qd_ref[kb], (1 - a) * qdd_ref[k] + a * qdd_ref[kb]
+
+    def rescue_wrench(k: int, a: float) -> np.ndarray:
+        """The rescue's root wrench (6,) at the substep ``a`` (0..1) of frame k: a critically
+        damped PD (free-joint coordinates: world force, body-frame torque) through the root
+        block of the mass matrix (``d`` after ``mj_step1``) towards the plan's root as the
+        search scores it (:func:`plan_at`): its height, orientation and place relative to the feet."""
+        ref, qd, _ = plan_at(k, a, d.site_xpos[sites, :2].mean(0))
+        vref = qd[:6]
         e = np.zeros(6)
         e[:3] = ref[:3] - d.qpos[:3]
         mujoco.mju_subQuat(e[3:], ref[3:7] / np.linalg.norm(ref[3:7]), d.qpos[3:7])
@@ -261,19 +268,12 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         ``mj_step1``), substep ``a`` (0..1) of frame k: :func:`~jmocap.data.synthetic.physics._control`
         (the QP tracker's whole-body inverse dynamics with the contacts MuJoCo has, the root rows
         with no root force) towards the plan's hinge angles plus ``off`` (nu,) and the plan's root
-        height and orientation, its horizontal place taken relative to the feet as the search
-        scores it."""
-        kb = min(k + 1, Te - 1)
-        qa, qb = qr[k], qr[kb].copy()
-        if np.dot(qa[3:7], qb[3:7]) < 0:
-            qb[3:7] *= -1
-        ref = (1 - a) * qa + a * qb
-        ref[:2] += dd.site_xpos[sites, :2].mean(0) - ((1 - a) * support_ref[k] + a * support_ref[kb])
+        height and orientation, its horizontal place taken relative to the feet (:func:`plan_at`)."""
+        ref, qd, qdd = plan_at(k, a, dd.site_xpos[sites, :2].mean(0))
         rot = np.zeros(3)
         mujoco.mju_subQuat(rot, ref[3:7] / np.linalg.norm(ref[3:7]), dd.qpos[3:7])
         e_qp[:3], e_qp[3:6], e_qp[6:] = ref[:3] - dd.qpos[:3], rot, _wrap(ref[7:] + off - dd.qpos[7:])
-        a_des = ((1 - a) * qdd_ref[k] + a * qdd_ref[kb] + kp_qp * e_qp
-                 + kd_qp * ((1 - a) * qd_ref[k] + a * qd_ref[kb] - dd.qvel))
+        a_des = qdd + kp_qp * e_qp + kd_qp * (qd - dd.qvel)
         con, _ = _floor_contacts(dd, floor, geom_foot, geom_body)
         A, Jc = _contact_jacobians(mj, dd, con, E, jp)
         mujoco.mj_fullM(mj, dd, MM)
@@ -327,18 +327,18 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
     chunks = [(i, min(i + sc.qp_substeps, n)) for i in range(0, n, sc.qp_substeps)]
     scratch = mujoco.MjData(mj)
 
-    def evaluate_qp(ctrl, k0, k2):
+    def evaluate_qp(ctrl, k0, k1, k2):
         """The QP actuation's rollouts of the per-substep offsets ``ctrl`` (m, steps, nu) from the
         state in ``state``: per chunk of ``qp_substeps`` substeps, each sample's QP torques at its
         own state, then ``mujoco.rollout`` of all samples over the chunk with those torques held
         (zero solver warm start, as :func:`commit`). Returns the costs (m,) over frames k0+1 .. k2
-        and the states (m, nstate) at the end of every frame."""
+        and the states (m, nstate) at frame k1, the window's end."""
         m = len(ctrl)
         st = np.repeat(state[None], m, axis=0)
         total = np.zeros(m)
         alive = np.ones(m, bool)
         tau = np.zeros((m, nv))
-        ends = np.zeros((k2 - k0, m, len(state)))
+        end = st
         for j, k in enumerate(range(k0, k2)):
             for i0, i1 in chunks:
                 for s in np.flatnonzero(alive):
@@ -355,8 +355,9 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
             total += np.where(alive & np.isfinite(c), c, np.inf)
             alive &= np.isfinite(total)
             st[~alive] = state
-            ends[j] = st
-        return total, ends
+            if k + 1 == k1:
+                end = st.copy()
+        return total, end
 
     def evaluate(offsets, prev, base_q, base_f, a, steps, k0, k2):
         """Servo targets of the offsets (:func:`servo_targets`; the QP actuation: the offsets per
@@ -365,9 +366,9 @@ def simulate_sampling(ch: Character, q_ref: np.ndarray, fps: float, cfg: Physics
         m = len(offsets)
         ctrl = servo_targets(offsets, prev, base_q, a, steps)
         if qp:
-            total, ends = evaluate_qp(ctrl, k0, k2)
+            total, end = evaluate_qp(ctrl, k0, k0 + steps // n, k2)
             total += sc.w_change * np.mean((offsets - prev[None]) ** 2, axis=1)
-            return ctrl, total, ends[steps // n - 1]
+            return ctrl, total, end
         controls = np.concatenate([ctrl, np.broadcast_to(base_f[None], (m,) + base_f.shape)], axis=-1)
         states, _ = rollout.rollout(mj, datas, state[None], controls, control_spec=control_spec,
                                     nstep=(k2 - k0) * n, initial_warmstart=d.qacc_warmstart[None].copy())
